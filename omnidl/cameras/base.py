@@ -1,0 +1,223 @@
+"""The one camera interface every part of omnidl asks for geometry.
+
+Conventions (fixed project-wide, see README "Conventions"):
+
+* Camera frame: OpenCV — x right, y down, z forward. Metres and radians.
+* Pixels: continuous coordinates ``(u, v)``, ``u`` to the right, ``v`` down. The
+  centre of pixel (row ``i``, column ``j``) is ``(j + 0.5, i + 0.5)``; the image
+  covers ``[0, W) x [0, H)``.
+* ``project`` maps ``(..., 3)`` camera-frame points to ``(..., 2)`` pixels and a
+  ``(...)`` bool mask. Points outside the field of view, or whose pixel falls
+  outside the image, are ``valid=False`` with finite (never NaN) pixel values.
+* ``unproject`` maps ``(..., 2)`` pixels to :class:`Rays` — origin ``(..., 3)``,
+  unit direction ``(..., 3)``, valid ``(...)``. Central cameras return origin 0.
+* Everything is batched torch, works in float32/float64 on any device, and is
+  differentiable w.r.t. the points/pixels where the maths is (invalid entries
+  are computed on safe substitute values so their gradients are finite).
+
+Camera objects are immutable, hashable and compared by value (frozen
+dataclasses), so layers can cache per-camera sampling plans keyed by camera.
+Parameters are plain Python floats; computations use the dtype/device of the
+input tensor.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple
+
+import torch
+from torch import Tensor
+
+
+class Rays(NamedTuple):
+    """A bundle of rays (lines with an orientation and a start point).
+
+    Attributes:
+        origin: ``(..., 3)`` start points in metres (zeros for central cameras).
+        direction: ``(..., 3)`` unit directions.
+        valid: ``(...)`` bool, False where the pixel does not see the scene.
+    """
+
+    origin: Tensor
+    direction: Tensor
+    valid: Tensor
+
+    def plucker(self) -> Tensor:
+        """Plücker coordinates ``(..., 6)`` = ``(d, m)`` with ``m = o x d``."""
+        return torch.cat([self.direction, torch.linalg.cross(self.origin, self.direction, dim=-1)], dim=-1)
+
+    def at(self, t: Tensor) -> Tensor:
+        """Points ``origin + t * direction``; ``t``: ``(...)`` range along the ray."""
+        return self.origin + t.unsqueeze(-1) * self.direction
+
+    def reshape(self, *shape: int) -> "Rays":
+        return Rays(self.origin.reshape(*shape, 3), self.direction.reshape(*shape, 3), self.valid.reshape(*shape))
+
+
+def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float32,
+               device: torch.device | str | None = None) -> Tensor:
+    """Pixel centres of a ``width x height`` image: ``(H, W, 2)`` with ``(u, v) = (j + .5, i + .5)``."""
+    u = torch.arange(width, dtype=dtype, device=device) + 0.5
+    v = torch.arange(height, dtype=dtype, device=device) + 0.5
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    return torch.stack([uu, vv], dim=-1)
+
+
+def in_image(uv: Tensor, width: float, height: float) -> Tensor:
+    """``(...)`` bool: pixel ``uv (..., 2)`` lies inside ``[0, W) x [0, H)``."""
+    u, v = uv[..., 0], uv[..., 1]
+    return (u >= 0) & (u < width) & (v >= 0) & (v < height) & torch.isfinite(u) & torch.isfinite(v)
+
+
+def safe_norm(x: Tensor, dim: int = -1, keepdim: bool = False, eps: float = 1e-30) -> Tensor:
+    """Euclidean norm whose gradient is finite at 0 (returns ``sqrt(|x|^2 + eps)``-like values only at 0)."""
+    sq = (x * x).sum(dim=dim, keepdim=keepdim)
+    zero = sq <= eps
+    return torch.where(zero, torch.zeros_like(sq), torch.sqrt(torch.where(zero, torch.ones_like(sq), sq)))
+
+
+def normalize(x: Tensor, dim: int = -1) -> Tensor:
+    """Unit vectors along ``dim``; zero vectors map to zero (finite gradient)."""
+    n = safe_norm(x, dim=dim, keepdim=True)
+    return x / torch.where(n > 0, n, torch.ones_like(n))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Base class of every projection model.
+
+    Subclasses are frozen dataclasses holding the calibration (``width`` and
+    ``height`` are the image size in pixels) and implement :meth:`project` and
+    :meth:`unproject`. Registered subclasses (see :func:`omnidl.cameras.register_camera`)
+    also implement :meth:`example`, a typical instance used by the registry-wide tests.
+    """
+
+    #: every ray passes through the origin
+    central: ClassVar[bool] = True
+    #: registry name, set by ``register_camera``
+    name: ClassVar[str] = ""
+
+    width: int
+    height: int
+
+    # -- the interface -----------------------------------------------------------------
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """``points (..., 3)`` camera frame -> ``uv (..., 2)`` pixels, ``valid (...)`` bool."""
+        raise NotImplementedError
+
+    def unproject(self, uv: Tensor) -> Rays:
+        """``uv (..., 2)`` pixels -> :class:`Rays` of shape ``(...)``."""
+        raise NotImplementedError
+
+    @property
+    def wraps_horizontally(self) -> bool:
+        """True when column ``W`` is column ``0`` again (full 360° longitude range)."""
+        return False
+
+    # -- derived helpers ------------------------------------------------------------------
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(width, height)``."""
+        return self.width, self.height
+
+    def pixel_grid(self, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+        """``(H, W, 2)`` pixel centres."""
+        return pixel_grid(self.width, self.height, dtype, device)
+
+    def unproject_grid(self, dtype: torch.dtype = torch.float32, device=None) -> Rays:
+        """Rays of every pixel centre, shape ``(H, W)``."""
+        return self.unproject(self.pixel_grid(dtype, device))
+
+    def resized(self, width: int, height: int, pad_right: int = 0, pad_bottom: int = 0) -> "Camera":
+        """The same optics seen on a ``width x height`` feature map.
+
+        The calibrated image (``self.width x self.height``) is assumed padded on the
+        right/bottom by ``pad_right``/``pad_bottom`` pixels before the network, and the
+        feature map spans the padded image. With ``s = (W + p_w) / W_FM`` every pixel
+        coordinate is divided by ``s`` (thesis Eq. 7.3: ``f_k = f (W_FM - p_w/s) / W_c
+        = f / s``, the same for the principal point). Padded areas are invalid.
+        """
+        return ResizedCamera(base=self, width=int(width), height=int(height),
+                             scale_x=width / (self.width + pad_right),
+                             scale_y=height / (self.height + pad_bottom))
+
+    def replace(self, **changes: Any) -> "Camera":
+        """A copy with some fields changed (dataclasses.replace)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_config(self) -> dict:
+        """A plain dict that :func:`omnidl.cameras.build` turns back into this camera."""
+        cfg = {"type": self.name}
+        for f in dataclasses.fields(self):
+            val = getattr(self, f.name)
+            if isinstance(val, Camera):
+                val = val.to_config()
+            elif isinstance(val, tuple):
+                val = list(val)
+            cfg[f.name] = val
+        return cfg
+
+    @classmethod
+    def example(cls) -> "Camera":
+        """A typical instance for tests and docs."""
+        raise NotImplementedError
+
+    def sample_points(self, n: int, dtype: torch.dtype = torch.float64, generator: torch.Generator | None = None,
+                      margin: float = 0.02) -> Tensor:
+        """``(n, 2)`` random pixels inside the valid image area (for tests and sampling).
+
+        Pixels are drawn uniformly in the image shrunk by ``margin`` of its size and
+        kept where ``unproject`` says they are valid.
+        """
+        out = []
+        total = 0
+        while total < n:
+            r = torch.rand(4 * n + 16, 2, dtype=dtype, generator=generator)
+            uv = torch.stack([(margin + (1 - 2 * margin) * r[:, 0]) * self.width,
+                              (margin + (1 - 2 * margin) * r[:, 1]) * self.height], -1)
+            uv = uv[self.unproject(uv).valid]
+            out.append(uv)
+            total += len(uv)
+        return torch.cat(out)[:n]
+
+
+@dataclass(frozen=True)
+class ResizedCamera(Camera):
+    """``base`` seen on a resized (and possibly padded) image: pixel coordinates scale by ``(scale_x, scale_y)``."""
+
+    name: ClassVar[str] = "resized"
+    base: Camera = None  # type: ignore[assignment]
+    scale_x: float = 1.0
+    scale_y: float = 1.0
+
+    @property
+    def central(self) -> bool:  # type: ignore[override]
+        return self.base.central
+
+    @property
+    def wraps_horizontally(self) -> bool:
+        return self.base.wraps_horizontally and abs(self.scale_x * self.base.width - self.width) < 1e-9
+
+    def _scale(self, like: Tensor) -> Tensor:
+        return torch.tensor([self.scale_x, self.scale_y], dtype=like.dtype, device=like.device)
+
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        uv, valid = self.base.project(points)
+        uv = uv * self._scale(uv)
+        return uv, valid & in_image(uv, self.width, self.height)
+
+    def unproject(self, uv: Tensor) -> Rays:
+        rays = self.base.unproject(uv / self._scale(uv))
+        return rays._replace(valid=rays.valid & in_image(uv, self.width, self.height))
+
+    def resized(self, width: int, height: int, pad_right: int = 0, pad_bottom: int = 0) -> Camera:
+        sx = width / (self.width + pad_right)
+        sy = height / (self.height + pad_bottom)
+        return ResizedCamera(base=self.base, width=int(width), height=int(height),
+                             scale_x=self.scale_x * sx, scale_y=self.scale_y * sy)
+
+    @classmethod
+    def example(cls) -> Camera:
+        from .equirectangular import Equirectangular
+        return Equirectangular(width=64, height=32).resized(32, 16)
