@@ -1,0 +1,213 @@
+"""Loss-weight search from the training app: ``python train.py +search=fredsnet_loss_weights search.trials=20``.
+
+Each trial is a short training run whose config is composed with Hydra's compose API from the same
+command line (minus the ``search`` options) plus the search's ``overrides`` and the trial's parameters,
+and trained in-process with :func:`omnidl.engine.train`. The search lives in ``search.dir``
+(default ``outputs/search/<name>``): running the same command again resumes it (``search.restart=true``
+starts over). At the end it writes
+
+* ``configs/loss/<name>_best.yaml`` — the loss config with the best weights, ready for
+  ``python train.py loss=<name>_best`` (also copied into the search folder);
+* ``trials.csv`` / ``trials.md`` — every trial with its parameters, status and objective;
+* ``objective.png`` — the objective per trial and the best so far.
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import io
+import logging
+import math
+from pathlib import Path
+from typing import Any, Callable
+
+from omegaconf import DictConfig, OmegaConf
+
+from omnidl.utils.io import atomic_write, atomic_write_text
+
+from .driver import SearchResult, TrialRecord, run_search
+from .space import SearchSpec, parse_search_spec
+
+log = logging.getLogger(__name__)
+
+
+def training_config_without_search(cfg: DictConfig) -> DictConfig:
+    """A copy of ``cfg`` without the ``search`` node."""
+    c = copy.deepcopy(cfg)
+    with open_struct(c):
+        c.pop("search", None)
+    return c
+
+
+class open_struct:
+    """Context manager lifting OmegaConf struct mode on a config."""
+
+    def __init__(self, cfg: DictConfig):
+        self.cfg = cfg
+
+    def __enter__(self):
+        self.flag = OmegaConf.is_struct(self.cfg)
+        OmegaConf.set_struct(self.cfg, False)
+        return self.cfg
+
+    def __exit__(self, *exc):
+        OmegaConf.set_struct(self.cfg, self.flag)
+
+
+def _format(v: Any) -> str:
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def _task_overrides() -> tuple[str | None, list[str]]:
+    """The running Hydra app's config name and command-line overrides, minus the search ones."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        hc = HydraConfig.get()
+    except Exception:
+        return None, []
+    keep = [o for o in hc.overrides.task
+            if not o.lstrip("+~").startswith("search") and not o.startswith("hydra.")]
+    return hc.job.config_name, keep
+
+
+def make_trial_config_fn(cfg: DictConfig, spec: SearchSpec, search_dir: Path) -> Callable[[dict, int], DictConfig]:
+    """Return ``fn(params, idx) -> DictConfig`` building one trial's training config."""
+    config_name, task = _task_overrides()
+    base = training_config_without_search(cfg)
+
+    def trial_overrides(params: dict, idx: int) -> list[str]:
+        out = list(spec.overrides) + [f"{k}={_format(v)}" for k, v in params.items()]
+        out.append(f"paths.output_dir={(search_dir / f'trial_{idx:03d}').as_posix()}")
+        return out
+
+    def compose_fn(params: dict, idx: int) -> DictConfig:
+        from hydra import compose
+        from hydra.core.global_hydra import GlobalHydra
+        if config_name and GlobalHydra.instance().is_initialized():
+            c = compose(config_name=config_name, overrides=task + trial_overrides(params, idx))
+            return training_config_without_search(c)
+        # outside a Hydra app (library use, tests): apply the overrides to a copy
+        c = copy.deepcopy(base)
+        with open_struct(c):
+            for o in trial_overrides(params, idx):
+                key, val = o.split("=", 1)
+                OmegaConf.update(c, key.lstrip("+"), _parse(val),
+                                 force_add=True)
+        return c
+
+    return compose_fn
+
+
+def _parse(val: str) -> Any:
+    import yaml
+    try:
+        return yaml.safe_load(val)
+    except Exception:
+        return val
+
+
+def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dict] | None = None) -> SearchResult:
+    """Entry point used by ``train.py`` when the config has a ``search`` node."""
+    train_cfg = training_config_without_search(cfg)
+    spec = parse_search_spec(cfg.search, train_cfg)  # fails here, before any training, on a bad key/range
+    search_dir = Path(cfg.search.get("dir") or f"outputs/search/{spec.name}")
+    restart = bool(cfg.search.get("restart", False))
+    if train_fn is None:
+        from omnidl.engine import train as train_fn  # type: ignore[no-redef]
+    build = make_trial_config_fn(cfg, spec, search_dir)
+
+    def evaluate(params: dict, idx: int) -> dict:
+        trial_cfg = build(params, idx)
+        log.info("search %s: trial %d with %s", spec.name, idx, params)
+        return train_fn(trial_cfg)
+
+    def on_end(rec: TrialRecord) -> None:
+        write_reports(spec, None, search_dir, extra=rec)
+
+    result = run_search(spec, evaluate, search_dir / "experiment.json", restart=restart, on_trial_end=on_end)
+    write_reports(spec, result, search_dir)
+    best_path = write_best_loss_config(spec, result, train_cfg, search_dir)
+    print(f"search {spec.name}: best objective {result.best_objective:.5g} at trial {result.best_trial} "
+          f"with {result.best_params}\n  best loss config: {best_path}\n  trials: {search_dir / 'trials.md'}")
+    return result
+
+
+def config_dir() -> Path:
+    """The primary config folder of the running Hydra app (the repo's ``configs/``)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        for src in HydraConfig.get().runtime.config_sources:
+            if src.provider == "main" and src.schema == "file":
+                return Path(src.path)
+    except Exception:
+        pass
+    return Path(__file__).resolve().parents[2] / "configs"
+
+
+def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: DictConfig, search_dir: Path) -> Path:
+    """Write the loss config with the best ``loss.*`` values as ``configs/loss/<name>_best.yaml``."""
+    loss = copy.deepcopy(train_cfg.get("loss"))
+    if loss is None:
+        raise ValueError("search: the training config has no 'loss' node to write the best weights into")
+    with open_struct(loss):
+        for key, val in result.best_params.items():
+            if key.startswith("loss."):
+                OmegaConf.update(loss, key[len("loss."):], val, force_add=True)
+    header = (f"# Best loss weights found by the '{spec.name}' search (trial {result.best_trial}, objective "
+              f"{result.best_objective:.6g}). Use: python train.py loss={spec.name}_best\n")
+    text = header + OmegaConf.to_yaml(loss, resolve=True)
+    atomic_write_text(search_dir / f"{spec.name}_best.yaml", text)
+    path = config_dir() / "loss" / f"{spec.name}_best.yaml"
+    atomic_write_text(path, text)
+    return path
+
+
+def write_reports(spec: SearchSpec, result: SearchResult | None, search_dir: Path,
+                  extra: TrialRecord | None = None) -> None:
+    """``trials.csv``, ``trials.md`` and ``objective.png`` in ``search_dir`` (atomic)."""
+    from .driver import load_records
+    records = load_records(search_dir / "experiment.json")
+    if not records:
+        return
+    keys = [p.key for p in spec.parameters]
+    metric_names = sorted({m for r in records for m in (r.get("metrics") or {})})
+    header = ["trial", "status", "objective"] + keys + metric_names
+    rows = []
+    for r in records:
+        obj = r.get("objective")
+        rows.append([r["index"], r["status"], "" if obj is None else f"{obj:.6g}"]
+                    + [f"{r['params'].get(k, float('nan')):.6g}" for k in keys]
+                    + [f"{(r.get('metrics') or {}).get(m, float('nan')):.6g}" for m in metric_names])
+    buf = io.StringIO()
+    csv.writer(buf).writerows([header] + rows)
+    atomic_write_text(search_dir / "trials.csv", buf.getvalue())
+    md = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    md += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    atomic_write_text(search_dir / "trials.md", "\n".join(md) + "\n")
+    plot_objective(records, spec.minimize, search_dir / "objective.png", title=spec.name)
+
+
+def plot_objective(records: list[dict], minimize: bool, path: Path, title: str = "") -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    done = [(r["index"], r["objective"]) for r in records if r["status"] == "COMPLETED" and r.get("objective") is not None]
+    if not done:
+        return
+    idx, val = zip(*done)
+    best, cur = [], math.inf if minimize else -math.inf
+    for v in val:
+        cur = min(cur, v) if minimize else max(cur, v)
+        best.append(cur)
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(idx, val, "o", label="trial")
+    ax.plot(idx, best, "-", label="best so far")
+    ax.set_xlabel("trial")
+    ax.set_ylabel("objective (" + ("min" if minimize else "max") + ")")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    plt.close(fig)
