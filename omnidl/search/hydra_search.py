@@ -128,7 +128,8 @@ def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dic
 
     result = run_search(spec, evaluate, search_dir / "experiment.json", restart=restart, on_trial_end=on_end)
     write_reports(spec, result, search_dir)
-    best_path = write_best_loss_config(spec, result, train_cfg, search_dir)
+    best_dir = Path(cfg.search.get("config_dir") or config_dir())
+    best_path = write_best_loss_config(spec, result, train_cfg, search_dir, best_dir)
     print(f"search {spec.name}: best objective {result.best_objective:.5g} at trial {result.best_trial} "
           f"with {result.best_params}\n  best loss config: {best_path}\n  trials: {search_dir / 'trials.md'}")
     return result
@@ -146,7 +147,8 @@ def config_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "configs"
 
 
-def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: DictConfig, search_dir: Path) -> Path:
+def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: DictConfig, search_dir: Path,
+                           configs: Path) -> Path:
     """Write the loss config with the best ``loss.*`` values as ``configs/loss/<name>_best.yaml``."""
     loss = copy.deepcopy(train_cfg.get("loss"))
     if loss is None:
@@ -159,7 +161,7 @@ def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: Di
               f"{result.best_objective:.6g}). Use: python train.py loss={spec.name}_best\n")
     text = header + OmegaConf.to_yaml(loss, resolve=True)
     atomic_write_text(search_dir / f"{spec.name}_best.yaml", text)
-    path = config_dir() / "loss" / f"{spec.name}_best.yaml"
+    path = configs / "loss" / f"{spec.name}_best.yaml"
     atomic_write_text(path, text)
     return path
 

@@ -99,7 +99,7 @@ def parse_search_spec(cfg: Mapping[str, Any], train_cfg: Any | None = None) -> S
     except ImportError:  # pragma: no cover
         pass
     known = {"name", "trials", "sobol_trials", "seed", "objective", "parameters", "fixed", "constraints",
-             "overrides", "max_failures", "dir", "restart"}
+             "overrides", "max_failures", "dir", "restart", "config_dir"}
     unknown = sorted(set(cfg) - known)
     if unknown:
         raise SearchConfigError(f"search: unknown key(s) {unknown}; expected some of {sorted(known)}")
