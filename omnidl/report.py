@@ -1,0 +1,182 @@
+"""Collect a sweep into a results table: ``python -m omnidl.report multirun/<dir> [--out DIR]``.
+
+Every job folder below ``<dir>`` that holds a ``metrics.json`` becomes one row. The row is named by the
+job's experiment code (``experiment_code`` in its ``.hydra/config.yaml``, e.g. ``F-Std-CE-B``), else by its
+Hydra overrides. Columns are the scalar metrics, in the order of Tables 4.1–4.6 when present
+(MRE, MAE, RMSE, RMSElog, δ¹, δ², δ³, mIoU, mAcc) and alphabetically after that.
+Writes ``results.md`` and ``results.csv``; when jobs report metrics per rotation angle
+(a ``rotation`` mapping ``angle -> metrics`` in ``metrics.json``), also ``rotation.png`` — one curve per
+job and metric, as Fig. 4.5.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+from omnidl.utils.io import atomic_write, atomic_write_text
+
+PREFERRED = ["mre", "mae", "rmse", "rmse_log", "rmselog", "delta1", "delta2", "delta3", "miou", "macc",
+             "ce", "cen", "iou3d", "iou2d"]
+LOWER_IS_BETTER = {"mre", "mae", "rmse", "rmse_log", "rmselog", "ce", "cen", "loss"}
+
+
+def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}} -> {"a/b": 1}``."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "/"))
+        else:
+            out[key] = v
+    return out
+
+
+def _short(key: str) -> str:
+    return key.rsplit("/", 1)[-1].lower().replace("δ", "delta")
+
+
+def _order(keys: list[str]) -> list[str]:
+    def rank(k: str):
+        s = _short(k)
+        return (PREFERRED.index(s) if s in PREFERRED else len(PREFERRED), k)
+    return sorted(keys, key=rank)
+
+
+def _job_name(job: Path, root: Path) -> str:
+    cfg = job / ".hydra" / "config.yaml"
+    if cfg.exists():
+        try:
+            from omegaconf import OmegaConf
+            c = OmegaConf.load(cfg)
+            code = OmegaConf.select(c, "experiment_code", default=None)
+            if code:
+                return str(code)
+        except Exception:
+            pass
+    ov = job / ".hydra" / "overrides.yaml"
+    if ov.exists():
+        try:
+            import yaml
+            items = yaml.safe_load(ov.read_text()) or []
+            if items:
+                return ",".join(str(i) for i in items)
+        except Exception:
+            pass
+    return str(job.relative_to(root)) if job != root else job.name
+
+
+def collect(root: str | Path) -> list[dict[str, Any]]:
+    """One record per job folder: ``{"name", "path", "metrics" (flat scalars), "rotation" (angle -> metrics)}``."""
+    root = Path(root)
+    if not root.exists():
+        raise FileNotFoundError(f"report: no such folder {root}")
+    jobs = sorted({p.parent for p in root.rglob("metrics.json") if "trial_" not in p.parent.name},
+                  key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(p))])
+    records = []
+    for job in jobs:
+        try:
+            raw = json.loads((job / "metrics.json").read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            print(f"report: skipping {job / 'metrics.json'}: {exc}", file=sys.stderr)
+            continue
+        rotation = raw.pop("rotation", None) if isinstance(raw, dict) else None
+        flat = {k: v for k, v in flatten(raw).items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        records.append({"name": _job_name(job, root), "path": str(job), "metrics": flat,
+                        "rotation": rotation if isinstance(rotation, dict) else None})
+    if not records:
+        raise FileNotFoundError(f"report: no metrics.json found below {root} (each job writes one)")
+    return records
+
+
+def table(records: list[dict[str, Any]], columns: list[str] | None = None) -> tuple[list[str], list[list[str]]]:
+    keys = columns or _order(sorted({k for r in records for k in r["metrics"]}))
+    header = ["network"] + keys
+    rows = []
+    for r in records:
+        row = [r["name"]]
+        for k in keys:
+            v = r["metrics"].get(k)
+            row.append("-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}")
+        rows.append(row)
+    return header, rows
+
+
+def to_markdown(header: list[str], rows: list[list[str]]) -> str:
+    arrows = [h + (" ↓" if _short(h) in LOWER_IS_BETTER else " ↑" if _short(h) in PREFERRED else "") for h in header]
+    arrows[0] = header[0]
+    lines = ["| " + " | ".join(arrows) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def plot_rotation(records: list[dict[str, Any]], path: Path) -> bool:
+    """Metric vs rotation angle, one line per job (Fig. 4.5). Returns False if no job has rotation results."""
+    rot = [r for r in records if r["rotation"]]
+    if not rot:
+        return False
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    metric_names = _order(sorted({k for r in rot for m in r["rotation"].values() for k in flatten(m)
+                                  if isinstance(flatten(m)[k], (int, float))}))
+    n = len(metric_names)
+    cols = min(4, n)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
+    for ax, m in zip(axes.flat, metric_names):
+        for r in rot:
+            pts = sorted((float(a), flatten(v).get(m)) for a, v in r["rotation"].items())
+            pts = [(a, v) for a, v in pts if isinstance(v, (int, float))]
+            if pts:
+                ax.plot(*zip(*pts), marker="o", label=r["name"])
+        ax.set_title(m)
+        ax.set_xlabel("rotation (deg)")
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    plt.close(fig)
+    return True
+
+
+def write_report(root: str | Path, out: str | Path | None = None) -> dict[str, Path]:
+    """Collect ``root`` and write ``results.md``, ``results.csv`` (and ``rotation.png``) into ``out`` (default root)."""
+    records = collect(root)
+    out = Path(out or root)
+    header, rows = table(records)
+    written = {"markdown": atomic_write_text(out / "results.md", to_markdown(header, rows))}
+    buf = io.StringIO()
+    csv.writer(buf).writerows([header] + rows)
+    written["csv"] = atomic_write_text(out / "results.csv", buf.getvalue())
+    if plot_rotation(records, out / "rotation.png"):
+        written["rotation"] = out / "rotation.png"
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m omnidl.report", description=__doc__.split("\n\n")[0])
+    ap.add_argument("sweep", help="a multirun folder (or any folder with job sub-folders holding metrics.json)")
+    ap.add_argument("--out", help="where to write results.md/results.csv (default: the sweep folder)")
+    args = ap.parse_args(argv)
+    try:
+        written = write_report(args.sweep, args.out)
+    except FileNotFoundError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    print(Path(written["markdown"]).read_text())
+    for k, p in written.items():
+        print(f"{k}: {p}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
