@@ -1,1 +1,9 @@
-"""omnidl.nn"""
+"""Distortion-aware layers: ProjectedConv2d (offsets from any camera), its fast fixed-offset backend, conversion."""
+from .offsets import compute_offsets, compute_sampling
+from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
+from .projected_conv import ProjectedConv2d, clear_plan_cache, plan_cache_info
+from .convert import convert_conv2d
+
+__all__ = ["ProjectedConv2d", "compute_offsets", "compute_sampling", "SamplingPlan", "build_plan",
+           "fixed_offset_conv2d", "deform_conv2d_reference", "clear_plan_cache", "plan_cache_info",
+           "convert_conv2d"]
