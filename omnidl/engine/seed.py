@@ -1,0 +1,41 @@
+"""Seeds, thread counts and RNG snapshots (for exact resume)."""
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def seed_everything(seed: int, num_threads: int = 0, deterministic: bool = False) -> None:
+    """Reset Python, NumPy and torch RNGs (and CUDA's) to ``seed``; set torch's intra-op thread count.
+
+    Called at the start of every job: Hydra's basic multirun launcher runs jobs in one process,
+    so nothing may leak from the previous job.
+    """
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+    if torch.cuda.is_available():
+        torch.cuda.manual_seed_all(seed)
+    if num_threads > 0:
+        torch.set_num_threads(num_threads)
+    torch.use_deterministic_algorithms(deterministic, warn_only=True)
+
+
+def rng_state() -> dict[str, Any]:
+    """A snapshot of every global RNG (Python, NumPy, torch CPU, CUDA)."""
+    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore a snapshot made by :func:`rng_state`."""
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"].cpu() if hasattr(state["torch"], "cpu") else state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])

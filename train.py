@@ -1,0 +1,23 @@
+"""Train a model: ``python train.py model=fredsnet [key=value ...]`` (see docs/engine.md).
+
+Under ``torchrun --nproc_per_node=N train.py ...`` every rank shares one Hydra run dir.
+"""
+import hydra
+from omegaconf import DictConfig
+
+from omnidl.engine.config import register_configs
+from omnidl.engine.launch import prepare_argv
+
+register_configs()
+prepare_argv()
+
+
+@hydra.main(version_base="1.3", config_path="configs", config_name="train")
+def main(cfg: DictConfig) -> float | None:
+    from omnidl.engine import train
+    summary = train(cfg)
+    return summary.get("best")  # the optimised value, for Hydra sweepers
+
+
+if __name__ == "__main__":
+    main()
