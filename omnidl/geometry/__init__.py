@@ -1,6 +1,35 @@
-"""Geometry on top of the camera models: re-projection between cameras, panorama rotation."""
+"""Geometry on top of the camera models (thesis ch. 2): Plücker lines, the 3D line through rays,
+rotations, re-projection between cameras, panorama rotation, cube maps, fisheye rectification.
+
+Conventions and the API are documented in ``docs/geometry.md``.
+"""
+from .cubemap import (FACE_NAMES, cube_face_camera, cube_face_rotations, cubemap_to_camera, cubemap_to_equirect,
+                      equirect_to_cubemap)
+from .line_from_rays import LineFit, LineStatus, line_from_rays
 from .panorama import rotate_panorama
+from .plucker import (ClosestPoints, closest_points_line_ray, closest_points_lines, line_distance,
+                      line_from_point_direction, line_from_points, lines_from_rays, normalize_line,
+                      plucker_identity, point_line_distance, point_on_line, project_point, side, transform_line)
+from .rectify import RectificationCoverage, perspective_camera, rectification_coverage, rectify, unrectify
+from .rotations import (UPRIGHT_TO_WORLD, axis_angle_to_matrix, camera_to_world, camera_to_world_rotation,
+                        euler_to_matrix, matrix_to_axis_angle, matrix_to_euler, matrix_to_quaternion,
+                        quaternion_to_matrix, random_rotation, random_tilt_rotation, rotation_angle, rotation_x,
+                        rotation_y, rotation_z, tilt_angle, upright_to_world, world_to_camera)
 from .warp import Reprojector, WarpGrid, clear_warp_cache, reproject, sample_grid, warp_grid
 
-__all__ = ["reproject", "warp_grid", "sample_grid", "clear_warp_cache", "WarpGrid", "Reprojector",
-           "rotate_panorama"]
+__all__ = [
+    # re-projection
+    "reproject", "warp_grid", "sample_grid", "clear_warp_cache", "WarpGrid", "Reprojector", "rotate_panorama",
+    "FACE_NAMES", "cube_face_camera", "cube_face_rotations", "equirect_to_cubemap", "cubemap_to_camera",
+    "cubemap_to_equirect", "perspective_camera", "rectify", "unrectify", "rectification_coverage",
+    "RectificationCoverage",
+    # Plücker lines
+    "line_from_points", "line_from_point_direction", "lines_from_rays", "normalize_line", "plucker_identity",
+    "side", "point_on_line", "point_line_distance", "project_point", "line_distance", "closest_points_lines",
+    "closest_points_line_ray", "ClosestPoints", "transform_line", "line_from_rays", "LineFit", "LineStatus",
+    # rotations
+    "axis_angle_to_matrix", "matrix_to_axis_angle", "quaternion_to_matrix", "matrix_to_quaternion",
+    "rotation_x", "rotation_y", "rotation_z", "euler_to_matrix", "matrix_to_euler", "rotation_angle",
+    "tilt_angle", "random_rotation", "random_tilt_rotation", "UPRIGHT_TO_WORLD", "upright_to_world",
+    "camera_to_world_rotation", "camera_to_world", "world_to_camera",
+]
