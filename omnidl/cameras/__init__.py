@@ -3,6 +3,11 @@ from .base import Camera, Rays, ResizedCamera, pixel_grid
 from .registry import build, get_camera_class, list_cameras, register_camera
 from .equirectangular import Equirectangular
 from .pinhole import Pinhole
+from .fisheye import Fisheye
+from .kannala_brandt import KannalaBrandt, read_kb_calibration
+from .catadioptric import Catadioptric, Unified
+from .scaramuzza import Scaramuzza, read_ocamcalib
 
 __all__ = ["Camera", "Rays", "ResizedCamera", "pixel_grid", "build", "get_camera_class", "list_cameras",
-           "register_camera", "Equirectangular", "Pinhole"]
+           "register_camera", "Equirectangular", "Pinhole", "Fisheye", "KannalaBrandt", "read_kb_calibration",
+           "Catadioptric", "Unified", "Scaramuzza", "read_ocamcalib"]

@@ -163,6 +163,14 @@ class Camera:
         """A typical instance for tests and docs."""
         raise NotImplementedError
 
+    @classmethod
+    def examples(cls) -> list["Camera"]:
+        """Every variant the registry-wide tests should exercise (default: ``[example()]``).
+
+        Models with discrete variants (fisheye lenses, mirror shapes) return one instance per variant.
+        """
+        return [cls.example()]
+
     def sample_points(self, n: int, dtype: torch.dtype = torch.float64, generator: torch.Generator | None = None,
                       margin: float = 0.02) -> Tensor:
         """``(n, 2)`` random pixels inside the valid image area (for tests and sampling).

@@ -50,12 +50,24 @@ def build(cfg: Mapping[str, Any] | None = None, **kwargs: Any):
         params.update(cfg)
     params.update(kwargs)
     params.pop("_target_", None)
+    params = {k: _plain(v) for k, v in params.items()}
     if "type" not in params:
         raise ValueError(f"camera config needs a 'type' field (one of {list_cameras()}); got keys {sorted(params)}")
     cls = get_camera_class(params.pop("type"))
     if hasattr(cls, "from_config"):
         return cls.from_config(params)
     return construct(cls, params)
+
+
+def _plain(value: Any) -> Any:
+    """OmegaConf containers (e.g. lists passed by ``hydra.utils.instantiate``) -> plain Python objects."""
+    try:
+        from omegaconf import OmegaConf
+        if OmegaConf.is_config(value):
+            return OmegaConf.to_container(value, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    return value
 
 
 def construct(cls: type, params: Mapping[str, Any]):
