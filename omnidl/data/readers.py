@@ -28,7 +28,11 @@ def read_raw(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
 
 def read_rgb(path: str | Path, size: tuple[int, int] | None = None) -> torch.Tensor:
     """RGB image -> ``(3, H, W)`` float32 in ``[0, 1]``; ``size=(W, H)`` resizes (area/linear)."""
-    img = read_raw(path, cv2.IMREAD_COLOR)
+    return rgb_to_tensor(read_raw(path, cv2.IMREAD_COLOR), size)
+
+
+def rgb_to_tensor(img: np.ndarray, size: tuple[int, int] | None = None) -> torch.Tensor:
+    """A BGR array from OpenCV -> ``(3, H, W)`` float32 RGB in ``[0, 1]``, optionally resized to ``size=(W, H)``."""
     if img.dtype == np.uint16:
         img = (img / 257.0).astype(np.uint8)
     img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

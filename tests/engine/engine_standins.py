@@ -42,12 +42,26 @@ class RandomPanoramas(torch.utils.data.Dataset):
         return {"image": img, "depth": depth, "semantic": sem, "meta": {"index": i, "name": f"sample_{i:03d}"}}
 
 
+class SimulatedKill(RuntimeError):
+    pass
+
+
 class TinyLoss(nn.Module):
+    """L1 depth + cross entropy; ``kill_at=k`` raises :class:`SimulatedKill` on the k-th training call."""
+
+    def __init__(self, kill_at: int = 0):
+        super().__init__()
+        self.kill_at, self.calls = kill_at, 0
+
     def forward(self, outputs, batch):
+        if torch.is_grad_enabled():
+            self.calls += 1
+            if self.kill_at and self.calls == self.kill_at:
+                raise SimulatedKill(f"killed at training call {self.calls}")
         valid = batch["depth"] > 0
         l_depth = (outputs["depth"] - batch["depth"]).abs()[valid].mean()
         l_sem = F.cross_entropy(outputs["semantic"], batch["semantic"], ignore_index=0)
-        return l_depth + l_sem, {"depth": float(l_depth), "semantic": float(l_sem)}
+        return l_depth + l_sem, {"depth": float(l_depth.detach()), "semantic": float(l_sem.detach())}
 
 
 class TinyMetrics:
