@@ -8,8 +8,9 @@ from .kannala_brandt import KannalaBrandt, read_kb_calibration
 from .catadioptric import Catadioptric, Unified
 from .scaramuzza import Scaramuzza, read_ocamcalib
 from .noncentral_panorama import NonCentralPanorama
+from .noncentral_catadioptric import NonCentralCatadioptric
 
 __all__ = ["Camera", "Rays", "ResizedCamera", "pixel_grid", "build", "get_camera_class", "list_cameras",
            "register_camera", "Equirectangular", "Pinhole", "Fisheye", "KannalaBrandt", "read_kb_calibration",
            "Catadioptric", "Unified", "Scaramuzza", "read_ocamcalib",
-           "NonCentralPanorama"]
+           "NonCentralPanorama", "NonCentralCatadioptric"]
