@@ -1,1 +1,13 @@
-"""omnidl.synth"""
+"""The built-in data engine: procedural indoor rooms ray-cast for any camera, with exact ground truth.
+
+See ``docs/synth.md``. Public API: :func:`sample_room`, :func:`place_camera`, :func:`render`,
+:class:`RoomLimits`, :class:`Scene`.
+"""
+from .room import RoomLimits, check_room, is_manhattan, sample_floor_plan
+from .scene import Scene, sample_room
+from .placement import place_camera, rig_radius, upright_rotation
+from .render import render
+from .layout import N_MAX
+
+__all__ = ["RoomLimits", "check_room", "is_manhattan", "sample_floor_plan", "Scene", "sample_room",
+           "place_camera", "rig_radius", "upright_rotation", "render", "N_MAX"]

@@ -1,0 +1,112 @@
+"""Camera poses in a scene: free random position and height, gravity-aligned or tilted.
+
+Pose convention (DESIGN.md): ``X_world = R X_cam + t``; an upright camera maps camera ``-y`` to
+world ``+z``; at yaw 0 camera ``x`` -> world ``+x`` and camera ``z`` (forward) -> world ``+y``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .geometry2d import distance_to_edges, points_in_polygon
+from .scene import Scene
+
+#: upright camera frame -> world at yaw 0 (columns: images of camera x, y, z)
+R_UPRIGHT = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def rot_z(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def axis_angle(axis, angle: float) -> np.ndarray:
+    """Rotation matrix (Rodrigues) about a unit ``axis`` by ``angle`` radians."""
+    k = np.asarray(axis, np.float64)
+    k = k / np.linalg.norm(k)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+
+
+def upright_rotation(R: np.ndarray) -> np.ndarray:
+    """``R_up_cam`` of a camera-to-world rotation: the rotation from the camera frame to the upright camera
+    frame with the same heading (the yaw of the camera's forward axis), so ``R = Rz(yaw) R_UPRIGHT R_up_cam``."""
+    f = R[:, 2]
+    if math.hypot(f[0], f[1]) < 1e-6:   # looking straight up/down: use the x axis heading
+        x = R[:, 0]
+        yaw = math.atan2(x[1], x[0])
+    else:
+        yaw = math.atan2(-f[0], f[1])
+    return (rot_z(yaw) @ R_UPRIGHT).T @ R
+
+
+def rig_radius(camera) -> float:
+    """Largest distance of a ray origin from the camera centre (0 for central cameras)."""
+    if getattr(camera, "central", True):
+        return 0.0
+    rays = camera.unproject_grid(dtype=torch.float64)
+    o = rays.origin[rays.valid]
+    return float(o.norm(dim=-1).max()) if o.numel() else 0.0
+
+
+def place_camera(scene: Scene, camera, seed: int | np.random.Generator, rotation="upright",
+                 max_tilt_deg: float = 30.0, height_range: tuple[float, float] = (1.0, 1.8),
+                 margin: float = 0.5, radius: float | None = None, max_tries: int = 2000) -> np.ndarray:
+    """A random free camera pose ``(4, 4)`` (camera-to-world) in ``scene``.
+
+    The camera centre lies inside the floor polygon, at least ``margin + rig radius`` from every wall and
+    outside every floor obstacle grown by the same amount (so a non-central rig's circle of radius ``Rc``
+    never passes through a wall or an object), at a height in ``height_range`` below beams.
+
+    Args:
+        rotation: ``"upright"`` (random yaw), ``"random"`` (random yaw and a tilt about a random
+            horizontal axis up to ``max_tilt_deg``), or a ``(3, 3)`` ``R_up_cam`` (fixed tilt, random yaw).
+    """
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    rc = rig_radius(camera) if radius is None else float(radius)
+    keep = margin + rc
+    top = min(height_range[1], scene.extra.get("beam_bottom", scene.height) - keep - 0.1, scene.height - keep - 0.1)
+    bottom = max(height_range[0], keep + 0.1)
+    if top < bottom:
+        raise ValueError(f"no free camera height: room height {scene.height:.2f} m, rig radius {rc:.2f} m")
+    lo, hi = scene.polygon.min(axis=0), scene.polygon.max(axis=0)
+    fps = scene.footprints
+    for _ in range(max_tries):
+        p = rng.uniform(lo, hi)
+        if not points_in_polygon(p[None], scene.polygon)[0]:
+            continue
+        if distance_to_edges(p[None], scene.polygon)[0] < keep:
+            continue
+        if len(fps) and _near_footprints(p, fps, keep):
+            continue
+        break
+    else:
+        raise RuntimeError("could not find a free camera position (room too cluttered for this rig radius)")
+    z = rng.uniform(bottom, top)
+    yaw = rng.uniform(-math.pi, math.pi)
+    if isinstance(rotation, str):
+        if rotation == "upright":
+            r_up_cam = np.eye(3)
+        elif rotation == "random":
+            a = rng.uniform(0, 2 * math.pi)
+            tilt = math.radians(max_tilt_deg) * math.sqrt(rng.uniform(0, 1))
+            r_up_cam = axis_angle((math.cos(a), 0.0, math.sin(a)), tilt)
+        else:
+            raise ValueError(f"rotation must be 'upright', 'random' or a 3x3 matrix, got {rotation!r}")
+    else:
+        r_up_cam = np.asarray(rotation, np.float64)
+        if r_up_cam.shape != (3, 3):
+            raise ValueError(f"rotation matrix must be (3, 3), got {r_up_cam.shape}")
+    pose = np.eye(4)
+    pose[:3, :3] = rot_z(yaw) @ R_UPRIGHT @ r_up_cam
+    pose[:3, 3] = (p[0], p[1], z)
+    return pose
+
+
+def _near_footprints(p: np.ndarray, fps: np.ndarray, keep: float) -> bool:
+    for fp in fps:
+        if points_in_polygon(p[None], fp)[0] or distance_to_edges(p[None], fp)[0] < keep:
+            return True
+    return False

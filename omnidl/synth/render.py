@@ -1,0 +1,205 @@
+"""Render a :class:`Scene` through any camera: RGB, range depth, semantics, instances, normals (+ layout).
+
+See ``docs/synth.md`` for the returned dict.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from omnidl.data.classes import CLASS_ID
+
+from . import materials as M
+from .layout import layout_ground_truth
+from .placement import upright_rotation
+from .raycast import CEILING, FLOOR, WALL, box_normals, cast_boxes, cast_room
+from .scene import Scene
+
+
+_RAY_CACHE: dict = {}
+
+
+def camera_rays(camera, dtype=torch.float32, device=None):
+    """Camera-frame rays of every pixel (cached per camera/dtype/device: cameras are hashable values)."""
+    key = (camera, dtype, str(device))
+    rays = _RAY_CACHE.get(key)
+    if rays is None:
+        r = camera.unproject_grid(dtype=torch.float64, device=device)
+        rays = (r.origin.reshape(-1, 3).to(dtype), r.direction.reshape(-1, 3).to(dtype), r.valid.reshape(-1))
+        if len(_RAY_CACHE) > 8:
+            _RAY_CACHE.clear()
+        _RAY_CACHE[key] = rays
+    return rays
+
+
+def world_rays(camera, pose: np.ndarray, dtype=torch.float32, device=None):
+    """Camera rays of every pixel in the world frame: ``origin (P or 1, 3)``, ``direction (P, 3)``, ``valid (P,)``."""
+    o_c, d_c, valid = camera_rays(camera, dtype, device)
+    R = torch.as_tensor(pose[:3, :3], dtype=dtype, device=device)
+    t = torch.as_tensor(pose[:3, 3], dtype=dtype, device=device)
+    d = d_c @ R.T
+    if getattr(camera, "central", True):
+        o = t[None]
+    else:
+        o = torch.addmm(t[None], o_c, R.T)
+    return o, d, valid
+
+
+def _box_groups(boxes: np.ndarray) -> list[Tensor]:
+    if len(boxes) == 0:
+        return []
+    inst = boxes[:, 8].astype(np.int64)
+    groups = []
+    for i in np.unique(inst):
+        groups.append(torch.as_tensor(np.nonzero(inst == i)[0], dtype=torch.int64))
+    return groups
+
+
+def _surface_tables(scene: Scene, dtype, device):
+    """Per-surface class, instance, material and (structural) normal tables.
+
+    Surface ids: walls ``0..N-1``, floor ``N``, ceiling ``N+1``, decals ``N+2..N+1+K``, boxes after that.
+    """
+    n, k = scene.num_walls, len(scene.decals)
+    poly = scene.polygon
+    e = np.roll(poly, -1, axis=0) - poly
+    inward = np.stack([-e[:, 1], e[:, 0], np.zeros(n)], 1) / np.linalg.norm(e, axis=1)[:, None]
+    normals = np.concatenate([inward, [[0, 0, 1.0], [0, 0, -1.0]],
+                              inward[scene.decals[:, 0].astype(np.int64)] if k else np.zeros((0, 3))])
+    sem = np.concatenate([np.full(n, CLASS_ID["wall"]), [CLASS_ID["floor"], CLASS_ID["ceiling"]],
+                          scene.decals[:, 5], scene.boxes[:, 7]]).astype(np.int64)
+    inst = np.concatenate([np.arange(1, n + 1), [scene.floor_instance, scene.ceiling_instance],
+                           scene.decals[:, 6], scene.boxes[:, 8]]).astype(np.int64)
+    mat = np.concatenate([scene.wall_material, [scene.floor_material, scene.ceiling_material],
+                          scene.decal_material, scene.box_material]).astype(np.int64)
+    as_t = lambda x, dt=torch.int64: torch.as_tensor(x, dtype=dt, device=device)  # noqa: E731
+    return as_t(sem), as_t(inst), as_t(mat), as_t(normals, dtype)
+
+
+def render(scene: Scene, camera, pose: np.ndarray, layout: bool = True, dtype: torch.dtype = torch.float32,
+           device=None, shadows: bool = False) -> dict:
+    """Ray-cast ``scene`` for ``camera`` at ``pose`` (``(4, 4)`` camera-to-world).
+
+    Returns the sample dict of ``docs/synth.md`` (``image``, ``depth``, ``semantic``, ``instance``,
+    ``normal``, ``valid`` and, with ``layout=True``, the layout ground truth). ``meta`` holds
+    ``camera``, ``manhattan``, ``num_walls``, ``rig_radius`` and the scene seed. ``shadows`` adds
+    box shadows from the point lights (slower).
+    """
+    pose = np.asarray(pose, np.float64)
+    W, H = camera.width, camera.height
+    o, d, valid = world_rays(camera, pose, dtype, device)
+    P = d.shape[0]
+    centre = torch.as_tensor(pose[:3, 3], dtype=dtype, device=device)
+    rig = 0.0 if o.shape[0] == 1 else float((o - centre).norm(dim=-1)[valid].max()) if valid.any() else 0.0
+
+    n, n_dec = scene.num_walls, len(scene.decals)
+    poly = torch.as_tensor(scene.polygon, dtype=dtype, device=device)
+    room = cast_room(o, d, poly, scene.height)
+    boxes = torch.as_tensor(scene.boxes, dtype=dtype, device=device)
+    groups = _box_groups(scene.boxes)
+    t, box_id = cast_boxes(o, d, boxes, groups, room.t, centre, rig)
+    hit = valid & torch.isfinite(t)
+    t = torch.where(hit, t, torch.zeros_like(t))
+    is_box = box_id >= 0
+    point = torch.addcmul(o, t[:, None], d)
+
+    # surface id per pixel
+    surf = torch.where(room.kind == WALL, room.wall, torch.where(room.kind == FLOOR, n, n + 1))
+    tex_u = torch.where(room.kind == WALL, room.s, point[:, 0])
+    tex_v = torch.where(room.kind == WALL, point[:, 2], point[:, 1])
+    on_wall = (room.kind == WALL) & ~is_box
+    if n_dec:
+        widx = on_wall.nonzero()[:, 0]
+        w_wall, w_s, w_z = room.wall[widx], room.s[widx], point[widx, 2]
+        w_surf = surf[widx]
+        w_u, w_v = tex_u[widx], tex_v[widx]
+        for k, row in enumerate(scene.decals):
+            wl, s0, s1, z0, z1 = row[:5]
+            m = (w_wall == int(wl)) & (w_s >= s0) & (w_s <= s1) & (w_z >= z0) & (w_z <= z1)
+            w_surf = torch.where(m, n + 2 + k, w_surf)
+            if scene.materials["texture"][scene.decal_material[k]] == M.PANEL:
+                w_u = torch.where(m, (w_s - s0) / (s1 - s0), w_u)
+                w_v = torch.where(m, (w_z - z0) / (z1 - z0), w_v)
+        surf[widx], tex_u[widx], tex_v[widx] = w_surf, w_u, w_v
+    sem_t, inst_t, mat_t, nrm_t = _surface_tables(scene, dtype, device)
+    normal = nrm_t[surf]
+    bidx = is_box.nonzero()[:, 0]
+    if bidx.numel():
+        bi = box_id[bidx]
+        nb, uvb = box_normals(point[bidx], boxes, bi)
+        normal[bidx] = nb
+        surf[bidx] = n + 2 + n_dec + bi
+        tex_u[bidx] = uvb[:, 0]
+        tex_v[bidx] = uvb[:, 1]
+    sem, inst, mat = sem_t[surf], inst_t[surf], mat_t[surf]
+    # normals face the ray
+    flip = (normal * d).sum(-1) > 0
+    normal = torch.where(flip[:, None], -normal, normal)
+    normal = normal * hit[:, None]
+
+    mats = {k: torch.as_tensor(v, device=device) for k, v in scene.materials.items()}
+    image = _shade(scene, mats, mat, tex_u, tex_v, point, normal, hit, dtype, device, boxes, groups, shadows)
+
+    R = torch.as_tensor(pose[:3, :3], dtype=dtype, device=device)
+    normal_cam = normal @ R                      # R^T n for row vectors
+    sem = sem * hit
+    inst = inst * hit
+    out = {
+        "image": image.T.reshape(3, H, W).to(torch.float32),
+        "depth": t.reshape(1, H, W).to(torch.float32),
+        "semantic": sem.reshape(H, W),
+        "instance": inst.reshape(H, W),
+        "normal": normal_cam.T.reshape(3, H, W).to(torch.float32),
+        "valid": hit.reshape(H, W),
+    }
+    meta = {"camera": camera.to_config(), "manhattan": bool(scene.manhattan), "num_walls": int(n),
+            "rig_radius": float(rig), "scene_seed": int(scene.seed)}
+    if layout:
+        kind_map = (room.kind * hit).reshape(H, W)
+        out["layout_seg"] = kind_map
+        out.update(layout_ground_truth(scene, camera, pose, kind_map, room.wall.reshape(H, W)))
+        r_up = upright_rotation(pose[:3, :3])
+        out["pose"] = torch.as_tensor(pose, dtype=torch.float32)
+        out["rotation"] = torch.as_tensor(r_up, dtype=torch.float32)
+        out["horizon_normal"] = torch.as_tensor(pose[:3, :3].T @ np.array([0.0, 0.0, 1.0]), dtype=torch.float32)
+        out["camera_height"] = torch.tensor(float(pose[2, 3]), dtype=torch.float32)
+        out["ceiling_height"] = torch.tensor(float(scene.height), dtype=torch.float32)
+    out["meta"] = meta
+    return out
+
+
+def _shade(scene: Scene, mats: dict, mat: Tensor, tu: Tensor, tv: Tensor, point: Tensor, normal: Tensor, hit: Tensor,
+           dtype, device, boxes: Tensor, groups, shadows: bool) -> Tensor:
+    """Lambertian shading ``(P, 3)``: albedo (procedural texture) x (ambient + point lights)."""
+    c1 = mats["c1"].to(dtype)[mat]
+    c2 = mats["c2"].to(dtype)[mat]
+    w = M.texture_mix(mats["texture"][mat], mats["scale"].to(dtype)[mat], tu, tv)[:, None]
+    albedo = c1 * (1 - w) + c2 * w
+    hits = hit.nonzero()[:, 0]
+    p, n = point[hits], normal[hits]
+    light = torch.full_like(p[:, 0], scene.ambient)
+    for row in scene.lights:
+        lp = torch.as_tensor(row[:3], dtype=dtype, device=device)
+        v = lp - p
+        dist = v.norm(dim=-1).clamp_min(1e-6)
+        lam = ((n * v).sum(-1) / dist).clamp_min(0.0)
+        contrib = float(row[3]) * lam / (1.0 + 0.25 * dist * dist)
+        if shadows and len(scene.boxes):
+            contrib = contrib * _shadow(p, lp, v, dist, boxes, groups)
+        light += contrib
+    light = 1.25 * light / (1.0 + 0.25 * light)      # soft highlight roll-off
+    emissive = mats["emissive"][mat[hits]]
+    a = albedo[hits]
+    colour = torch.zeros_like(albedo)
+    colour[hits] = torch.where(emissive[:, None], a, a * light[:, None]).clamp(0.0, 1.0)
+    return colour
+
+
+def _shadow(p: Tensor, lp: Tensor, v: Tensor, dist: Tensor, boxes: Tensor, groups) -> Tensor:
+    """1 where the segment from ``p`` to the light is free of boxes, else 0.35 (soft-ish shadow)."""
+    # rays from the light towards the points: a central "camera" at the light position
+    d = -v / dist[:, None]
+    t, bid = cast_boxes(lp[None], d, boxes, groups, dist - 1e-3, lp, 0.0)
+    blocked = bid >= 0
+    return torch.where(blocked, torch.full_like(dist, 0.35), torch.ones_like(dist))
