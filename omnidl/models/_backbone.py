@@ -70,11 +70,17 @@ def load_backbone_weights(net: nn.Module, path: str | os.PathLike) -> None:
                 k = k[len(prefix):]
         if not k.startswith("fc."):
             cleaned[k] = v
-    missing, unexpected = net.load_state_dict(cleaned, strict=False)
-    if missing or unexpected:
+    own = net.state_dict()
+    missing = [k for k in own if k not in cleaned]
+    unexpected = [k for k in cleaned if k not in own]
+    wrong = [f"{k}: {tuple(cleaned[k].shape)} vs {tuple(v.shape)}" for k, v in own.items()
+             if k in cleaned and tuple(cleaned[k].shape) != tuple(v.shape)]
+    if missing or unexpected or wrong:
         raise ValueError(f"backbone weights {path!r} do not fit {type(net).__name__}: "
                          f"missing {missing[:8]}{'...' if len(missing) > 8 else ''}, "
-                         f"unexpected {unexpected[:8]}{'...' if len(unexpected) > 8 else ''}")
+                         f"unexpected {unexpected[:8]}{'...' if len(unexpected) > 8 else ''}, "
+                         f"wrong shapes {wrong[:4]}{'...' if len(wrong) > 4 else ''}")
+    net.load_state_dict(cleaned, strict=True)
 
 
 class ResNetFeatures(nn.Module):
