@@ -13,9 +13,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-#: keys rotate_sample knows how to move; any other tensor key of a sample is refused (its geometry would be wrong)
-ROTATABLE = {"image": "bilinear", "depth": "nearest", "semantic": "nearest", "valid": "nearest"}
-
+#: keys rotate_sample knows how to move (and how); ``normal`` vectors are also rotated into the new frame
+ROTATABLE = {"image": "bilinear", "depth": "nearest", "semantic": "nearest", "valid": "nearest",
+             "instance": "nearest", "normal": "nearest", "layout_seg": "nearest", "edges": "bilinear"}
 
 def axis_angle_matrix(axis, angle_rad: float, dtype=torch.float64) -> torch.Tensor:
     """Rodrigues: ``(3, 3)`` rotation by ``angle_rad`` about the unit vector ``axis`` (right-handed)."""
@@ -38,24 +38,41 @@ def horizontal_rotation(angle_deg: float, axis: str | float = "x") -> torch.Tens
     return axis_angle_matrix(vec, math.radians(angle_deg))
 
 
-def rotate_sample(sample: dict[str, Any], R: torch.Tensor) -> dict[str, Any]:
-    """Rotate a panorama sample (``R`` = ``R_old_new``, see :func:`omnidl.geometry.rotate_panorama`).
+def rotate_tensors(data: dict[str, Any], R: torch.Tensor, batched: bool, drop_unknown: bool = False
+                   ) -> dict[str, Any]:
+    """Rotate the image-like tensors of a sample (``batched=False``) or batch (``batched=True``).
 
-    Handles ``image`` (bilinear), ``depth``, ``semantic`` and ``valid`` (nearest); ``meta`` gets ``rotation``.
-    Any other tensor key raises a ``ValueError`` (e.g. layout boundaries need their own rotation).
+    ``R`` is ``R_old_new`` (see :func:`omnidl.geometry.rotate_panorama`). Keys of :data:`ROTATABLE` are
+    resampled (integer/bool maps with nearest, keeping their dtype; ``normal`` vectors become ``R^T n``).
+    Any other tensor key raises a ``ValueError`` naming it -- its geometry (e.g. layout boundaries) would
+    be wrong -- unless ``drop_unknown`` removes it. Non-tensor values are kept.
     """
     from omnidl.geometry import rotate_panorama
-    other = [k for k, v in sample.items() if isinstance(v, torch.Tensor) and k not in ROTATABLE]
-    if other:
-        raise ValueError(f"rotate_sample cannot rotate sample keys {other}; only {sorted(ROTATABLE)}")
-    out = dict(sample)
+    other = [k for k, v in data.items() if isinstance(v, torch.Tensor) and k not in ROTATABLE]
+    if other and not drop_unknown:
+        raise ValueError(f"cannot rotate the panorama keys {other}: only {sorted(ROTATABLE)} are supported "
+                         "(drop the others, e.g. layout=False for synthetic data)")
+    out = {k: v for k, v in data.items() if k not in other}
     for key, mode in ROTATABLE.items():
-        v = sample.get(key)
+        v = data.get(key)
         if not isinstance(v, torch.Tensor):
             continue
-        src = v.to(torch.float32) if not v.is_floating_point() else v
-        rot, _ = rotate_panorama(src, R.to(torch.float32), mode=mode)
-        out[key] = rot.round().to(v.dtype) if not v.is_floating_point() else rot.to(v.dtype)
+        src = v if v.is_floating_point() else v.to(torch.float32)
+        plane = src.dim() == (3 if batched else 2)  # (B,H,W) / (H,W) maps get a channel axis
+        if plane:
+            src = src.unsqueeze(-3)
+        rot, _ = rotate_panorama(src, R.to(device=src.device, dtype=src.dtype), mode=mode)
+        if key == "normal":  # the same surface seen from the new frame: n_new = R^T n_old
+            rot = torch.einsum("ji,...jhw->...ihw", R.to(rot), rot)
+        if plane:
+            rot = rot.squeeze(-3)
+        out[key] = rot.to(v.dtype) if v.is_floating_point() else rot.round().to(v.dtype)
+    return out
+
+
+def rotate_sample(sample: dict[str, Any], R: torch.Tensor, drop_unknown: bool = False) -> dict[str, Any]:
+    """Rotate one sample (see :func:`rotate_tensors`); ``meta["rotation"]`` records ``R``."""
+    out = rotate_tensors(sample, R, batched=False, drop_unknown=drop_unknown)
     meta = dict(sample.get("meta") or {})
     meta["rotation"] = R.tolist()
     out["meta"] = meta
@@ -67,10 +84,12 @@ class RandomRotation(Dataset):
 
     The angle and axis come from a generator seeded by ``(seed, epoch, index)``: the same sample in the same
     epoch is always rotated the same way (exact resume; any number of workers). Call :meth:`set_epoch`.
+    Keys that cannot be rotated (layout annotations) are dropped unless ``drop_unknown=False``.
     """
 
-    def __init__(self, dataset, max_deg: float = 10.0, seed: int = 0):
+    def __init__(self, dataset, max_deg: float = 10.0, seed: int = 0, drop_unknown: bool = True):
         self.dataset, self.max_deg, self.seed, self.epoch = dataset, float(max_deg), int(seed), 0
+        self.drop_unknown = drop_unknown
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -90,4 +109,4 @@ class RandomRotation(Dataset):
         if sample is None:
             return None
         angle, az = self.angles(index)
-        return rotate_sample(sample, horizontal_rotation(angle, az))
+        return rotate_sample(sample, horizontal_rotation(angle, az), drop_unknown=self.drop_unknown)

@@ -125,6 +125,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     ec = cfg.eval
     tc = cfg.trainer
     out_dir = Path(output_dir(cfg))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "postprocess.jsonl").unlink(missing_ok=True)  # appended per batch below
     seed_everything(int(tc.seed), int(tc.num_threads), False)
     device = pick_device(str(tc.device))
     model = build_model(cfg).to(device).eval()
@@ -238,19 +240,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _rotate_batch(batch: dict[str, Any], R: torch.Tensor) -> dict[str, Any]:
-    from omnidl.data.transforms import ROTATABLE
-    from omnidl.geometry import rotate_panorama
-    out = dict(batch)
-    for key, mode in ROTATABLE.items():
-        v = batch.get(key)
-        if not isinstance(v, torch.Tensor):
-            continue
-        src = v.float() if not v.is_floating_point() else v
-        squeeze = src.dim() == 3  # (B, H, W) labels
-        rot, _ = rotate_panorama(src[:, None] if squeeze else src, R.to(src.dtype), mode=mode)
-        rot = rot[:, 0] if squeeze else rot
-        out[key] = rot.round().to(v.dtype) if not v.is_floating_point() else rot
-    return out
+    from omnidl.data.transforms import rotate_tensors
+    return rotate_tensors(batch, R, batched=True, drop_unknown=True)
 
 
 def _write_rotation(out_dir: Path, rotation: dict[str, dict[str, float]]) -> None:
