@@ -7,3 +7,11 @@ from .convert import convert_conv2d
 __all__ = ["ProjectedConv2d", "compute_offsets", "compute_sampling", "SamplingPlan", "build_plan",
            "fixed_offset_conv2d", "deform_conv2d_reference", "clear_plan_cache", "plan_cache_info",
            "convert_conv2d"]
+
+# layers of the FFC / W-conv helper (omnidl/nn/padding.py, ffc.py, wconv.py)
+from .padding import CircularConv2d, PanoramaPad2d, make_conv2d, pad_panorama
+from .ffc import FFC, FourierBlock, FourierUnit, SpectralTransform, split_channels
+from .wconv import ConvNormAct, WConv, make_activation
+
+__all__ += ["CircularConv2d", "PanoramaPad2d", "make_conv2d", "pad_panorama", "FFC", "FourierBlock", "FourierUnit",
+            "SpectralTransform", "split_channels", "ConvNormAct", "WConv", "make_activation"]

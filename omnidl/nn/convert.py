@@ -1,11 +1,13 @@
 """Swap the convolutions of any network for :class:`ProjectedConv2d`, keeping the weights."""
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from torch import nn
 
 from omnidl.cameras.base import Camera
 
-from .projected_conv import Backend, ProjectedConv2d
+from .projected_conv import Backend, ProjectedConv2d, as_camera
 
 
 def _convertible(m: nn.Module, min_kernel: int) -> bool:
@@ -14,7 +16,7 @@ def _convertible(m: nn.Module, min_kernel: int) -> bool:
                      (any(k % 2 == 0 for k in m.kernel_size) or any(s != 1 for s in m.stride))))
 
 
-def convert_conv2d(model: nn.Module, camera: Camera, min_kernel: int = 3, backend: Backend = "auto",
+def convert_conv2d(model: nn.Module, camera: Camera | Mapping, min_kernel: int = 3, backend: Backend = "auto",
                    **kwargs) -> nn.Module:
     """Replace every ``nn.Conv2d`` with a kernel side ``>= min_kernel`` by :class:`ProjectedConv2d`.
 
@@ -26,8 +28,9 @@ def convert_conv2d(model: nn.Module, camera: Camera, min_kernel: int = 3, backen
     The model is modified in place and returned. Every layer reads ``camera`` resized to
     its own input, so the camera is the one of the network's input image.
     """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"convert_conv2d needs an omnidl Camera, got {type(camera).__name__}")
+    camera = as_camera(camera)
+    if camera is None:
+        raise TypeError("convert_conv2d needs a camera (an omnidl Camera or a camera config mapping), got None")
     if isinstance(model, nn.Conv2d) and _convertible(model, min_kernel):
         return _replace(model, camera, backend, kwargs)
     for name, child in list(model.named_children()):

@@ -14,7 +14,8 @@ How the kernel is built, for an input (feature map) of size ``H x W``:
 1. ``cam = camera.resized(W, H)`` — the optics on the feature map (padding-aware).
 2. **Reference pixel** ``p0``: the projection of the optical axis ``+z`` (the principal
    point of pinhole/fisheye/catadioptric models, the centre of a full panorama, which lies
-   on the equator), or the image centre when ``+z`` is not seen. ``r0`` is its ray.
+   on the equator), or the image centre when ``+z`` is not seen, or (blind centre, e.g. a
+   mirror camera) the seen pixel centre nearest the image centre. ``r0`` is its ray.
 3. **Reference kernel** (the kernel-pitch rule): the kernel's taps at ``p0`` are
    exactly the regular pixel grid — tap ``(i, j)`` is the ray of pixel
    ``p0 + ((j - kw//2) dil_w, (i - kh//2) dil_h)``. So at ``p0`` the kernel spans exactly
@@ -38,8 +39,8 @@ How the kernel is built, for an input (feature map) of size ``H x W``:
 
 Invalid samples (tap ray not seen by the camera, e.g. outside a fisheye circle, or
 outside the image) get ``mask = 0`` and offset 0: a sampler must read zero there. An
-invalid anchor (its pixel is not seen) keeps the regular grid (offsets 0) with the mask
-of plain zero padding, i.e. the layer behaves like ``nn.Conv2d`` at that position.
+invalid anchor (its pixel is not seen) keeps the regular grid (offsets 0), taps on pixels
+the camera does not see reading zero: there the layer is ``nn.Conv2d`` on the seen pixels.
 """
 from __future__ import annotations
 
@@ -86,12 +87,19 @@ def _reference(cam: Camera) -> tuple[Tensor, Tensor]:
     uv, valid = _project_dirs(cam, z)
     if bool(valid):
         return uv, z
-    p0 = torch.tensor([cam.width / 2, cam.height / 2], dtype=torch.float64)
-    rays = cam.unproject(p0)
-    if not bool(rays.valid):
-        raise ValueError(f"camera {cam!r}: neither the optical axis nor the image centre is seen; "
-                         "cannot choose the reference pixel of the projected kernel")
-    return p0, rays.direction
+    centre = torch.tensor([cam.width / 2, cam.height / 2], dtype=torch.float64)
+    rays = cam.unproject(centre)
+    if bool(rays.valid):
+        return centre, rays.direction
+    # blind centre (e.g. a mirror's own reflection): the seen pixel centre nearest the image centre
+    grid = cam.pixel_grid(torch.float64).reshape(-1, 2)
+    rays = cam.unproject(grid)
+    ok = rays.valid & torch.isfinite(rays.direction).all(-1)
+    if not bool(ok.any()):
+        raise ValueError(f"camera {cam!r} sees no pixel: cannot choose the reference pixel of the projected kernel")
+    dist = torch.where(ok, (grid - centre).norm(dim=-1), torch.full_like(grid[:, 0], math.inf))
+    i = int(dist.argmin())
+    return grid[i], rays.direction[i]
 
 
 def _upright_frame(d: Tensor) -> Tensor:
@@ -224,8 +232,12 @@ def compute_sampling(camera: Camera, in_hw: tuple[int, int], kernel_size: int | 
             valid = valid & (tx_ > -1) & (tx_ < W)
     dy = ty_ - base_y
     dx = tx_ - base_x
-    # invalid anchors: regular grid with plain zero padding
-    grid_ok = in_image(torch.stack([base_x + 0.5, base_y + 0.5], -1), W, H)
+    # invalid anchors: regular grid; taps on pixels the camera does not see read zero
+    gu = base_x + 0.5
+    if wrap:
+        gu = torch.remainder(gu, W)
+    grid_uv = torch.stack([gu, base_y + 0.5], -1)
+    grid_ok = in_image(grid_uv, W, H) & cam.unproject(grid_uv).valid
     valid = torch.where(anchor_ok[..., None], valid, grid_ok)
     dy = torch.where(anchor_ok[..., None] & valid, dy, torch.zeros_like(dy))
     dx = torch.where(anchor_ok[..., None] & valid, dx, torch.zeros_like(dx))

@@ -9,6 +9,7 @@ module-level cache shared by every layer with the same key.
 from __future__ import annotations
 
 import threading
+from collections.abc import Mapping
 from typing import Literal
 
 import torch
@@ -89,6 +90,21 @@ def plan_cache_info() -> dict[str, int]:
                 "plan_bytes": plan_bytes, "offset_bytes": off_bytes}
 
 
+def as_camera(camera) -> Camera | None:
+    """``None``, a :class:`Camera`, or a camera config mapping (``{"type": ..., ...}``) -> camera."""
+    if camera is None or isinstance(camera, Camera):
+        return camera
+    try:
+        from omegaconf import DictConfig
+        is_cfg = isinstance(camera, DictConfig)
+    except ImportError:  # pragma: no cover
+        is_cfg = False
+    if is_cfg or isinstance(camera, Mapping):
+        from omnidl.cameras import build
+        return build(camera)
+    raise TypeError(f"camera must be an omnidl Camera, a camera config mapping or None, got {type(camera).__name__}")
+
+
 def _pair(v) -> Pair:
     return (v, v) if isinstance(v, int) else (int(v[0]), int(v[1]))
 
@@ -100,8 +116,8 @@ class ProjectedConv2d(nn.Conv2d):
         in_channels ... padding_mode: as ``nn.Conv2d``. With a camera, ``padding_mode`` must
             be ``"zeros"`` (360° wrap is ``wrap``, never top/bottom) and string padding only
             ``"valid"`` or ``"same"`` (odd kernels, stride 1).
-        camera: a :class:`~omnidl.cameras.Camera` of the network's INPUT image (or ``None``:
-            plain ``nn.Conv2d``). Each input size ``H x W`` uses ``camera.resized(W, H,
+        camera: a :class:`~omnidl.cameras.Camera` (or a camera config mapping) of the network's
+            INPUT image, or ``None``: plain ``nn.Conv2d``. Each input size ``H x W`` uses ``camera.resized(W, H,
             *image_padding)``.
         backend: ``"fast"`` (precomputed bilinear taps, custom autograd; groups=1),
             ``"torchvision"`` (``deform_conv2d`` with the same offsets; reference) or
@@ -111,8 +127,8 @@ class ProjectedConv2d(nn.Conv2d):
             at the camera's reference pixel — principal point, or the panorama centre on
             the equator — the taps are exactly ``dilation`` pixels apart).
         image_padding: ``(pad_right, pad_bottom)`` of the calibrated image before the network.
-        save_columns: keep the gathered columns for the weight gradient (fast, more memory)
-            or recompute them in backward.
+        chunk_positions: output positions per chunk on the fast path (``None``: automatic,
+            about ``sampling.CHUNK_BYTES`` of columns per chunk).
 
     Input ``(B, C, H, W)``; output ``(B, Cout, Ho, Wo)`` (channels-last strides on the fast path).
     """
@@ -120,7 +136,7 @@ class ProjectedConv2d(nn.Conv2d):
     def __init__(self, in_channels: int, out_channels: int, kernel_size, stride=1, padding=0, dilation=1,
                  groups: int = 1, bias: bool = True, padding_mode: str = "zeros", device=None, dtype=None, *,
                  camera: Camera | None = None, backend: Backend = "auto", wrap: bool | str = "auto",
-                 kernel: str = "grid", image_padding: Pair = (0, 0), save_columns: bool = True) -> None:
+                 kernel: str = "grid", image_padding: Pair = (0, 0), chunk_positions: int | None = None) -> None:
         super().__init__(in_channels, out_channels, kernel_size, stride=stride, padding=padding, dilation=dilation,
                          groups=groups, bias=bias, padding_mode=padding_mode, device=device, dtype=dtype)
         if backend not in ("auto", "fast", "torchvision"):
@@ -136,7 +152,7 @@ class ProjectedConv2d(nn.Conv2d):
         self.wrap = wrap
         self.kernel = kernel
         self.image_padding = _pair(image_padding)
-        self.save_columns = save_columns
+        self.chunk_positions = chunk_positions
         self.camera = camera  # validated below via the property setter
 
     # camera is a plain attribute (not a buffer): cameras are hashable value objects
@@ -146,9 +162,8 @@ class ProjectedConv2d(nn.Conv2d):
 
     @camera.setter
     def camera(self, camera: Camera | None) -> None:
+        camera = as_camera(camera)
         if camera is not None:
-            if not isinstance(camera, Camera):
-                raise TypeError(f"camera must be an omnidl Camera or None, got {type(camera).__name__}")
             if self.padding_mode != "zeros":
                 raise ValueError(f"ProjectedConv2d with a camera needs padding_mode='zeros' (got "
                                  f"{self.padding_mode!r}); 360° cameras wrap horizontally through wrap=")
@@ -191,7 +206,7 @@ class ProjectedConv2d(nn.Conv2d):
         key = self.geometry_key(tuple(x.shape[-2:]))
         if self.resolved_backend() == "fast":
             plan = get_plan(key, x.device, x.dtype)
-            return fixed_offset_conv2d(x, self.weight, self.bias, plan, save_columns=self.save_columns)
+            return fixed_offset_conv2d(x, self.weight, self.bias, plan, positions=self.chunk_positions)
         off, mask = get_offsets(key, x.device, x.dtype)
         return deform_conv2d_reference(x, self.weight, self.bias, off, mask, self.stride, self._padding_pair(),
                                        self.dilation, wrap=key[6])

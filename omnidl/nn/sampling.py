@@ -5,15 +5,16 @@ row ``n = p * K + k`` with ``p = oy * Wo + ox`` and ``k = i * kw + j`` — the 4
 corners ``idx (N, 4)`` (flat input pixel ``y * W + x``) and weights ``weight (N, 4)``.
 Corners outside the image get weight 0 (zero padding, as ``deform_conv2d``); with
 ``wrap`` the column index is taken modulo ``W`` (360° cameras, no seam); the validity
-mask is folded into the weights. ``st`` is the sparse transpose ``S^T (H*W, N)`` (CSR)
-of the sampling matrix ``S (N, H*W)``.
+mask is folded into the weights. Together they are the sparse sampling matrix
+``S (N, H*W)`` (4 non-zeros per row).
 
-Fast backend (:func:`fixed_offset_conv2d`, groups = 1), per image of the batch::
+Fast backend (:func:`fixed_offset_conv2d`, groups = 1), per image of the batch and per
+chunk of output positions (so that each chunk's columns stay in cache)::
 
-    cols = S @ X                        # embedding_bag over channels-last rows: (Ho*Wo*K, C)
-    out  = cols.view(Ho*Wo, K*C) @ Wm   # one GEMM, Wm = weight as (K*C, Cout)
-    grad_X = S^T @ (grad_out @ Wm^T)    # GEMM + precomputed CSR product
-    grad_W = cols^T @ grad_out          # GEMM with the saved (or recomputed) columns
+    cols = S_c @ X                      # embedding_bag over channels-last rows: (P_c, K*C)
+    out_c = cols @ Wm                   # GEMM, Wm = weight as (K*C, Cout)
+    grad_X[band] += S_c^T @ (grad_out_c @ Wm^T)   # GEMM + precomputed CSR transpose of the chunk
+    grad_W += cols^T @ grad_out_c       # columns recomputed in backward (nothing big is saved)
 
 No offsets are expanded over the batch: the plan is shared by every image. Outputs
 and input gradients come back as NCHW tensors with channels-last strides.
@@ -24,7 +25,7 @@ offsets and mask (circular padding of the input for ``wrap``): the test referenc
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -33,34 +34,71 @@ from torch import Tensor
 from .offsets import Pair, output_size
 
 
+#: target size (bytes) of one chunk of gathered columns; keeps the gather -> GEMM -> scatter in cache
+CHUNK_BYTES = 2_500_000
+
+
 @dataclass(frozen=True, eq=False)
 class SamplingPlan:
-    """Bilinear taps of a fixed-offset convolution on one input size (see module docstring)."""
+    """Bilinear taps of a fixed-offset convolution on one input size (see module docstring).
+
+    ``idx (N, 4)`` int64 flat input pixels and ``weight (N, 4)`` bilinear weights (0 for
+    corners that read zero), ``N = Ho * Wo * kh * kw``. Chunked sparse transposes are
+    built on first use per chunk length and kept in ``chunk_cache``.
+    """
 
     in_hw: Pair
     out_hw: Pair
     kernel_size: Pair
-    idx: Tensor  # (N, 4) int64
-    weight: Tensor  # (N, 4) float
-    st: Tensor  # (H*W, N) sparse CSR
+    idx: Tensor
+    weight: Tensor
+    chunk_cache: dict = field(default_factory=dict, repr=False)
 
     @property
     def taps(self) -> int:
         return self.kernel_size[0] * self.kernel_size[1]
 
+    def chunks(self, positions: int) -> list[tuple[int, int, int, int, Tensor]]:
+        """Chunks of ``positions`` output positions: ``(start, end, lo, hi, st)`` with ``st`` the CSR
+        ``(hi - lo, (end - start) * K)`` transpose of the chunk's rows of ``S``, restricted to the
+        input pixels ``[lo, hi)`` they touch."""
+        hit = self.chunk_cache.get(positions)
+        if hit is not None:
+            return hit
+        P = self.out_hw[0] * self.out_hw[1]
+        K = self.taps
+        out = []
+        for s in range(0, P, positions):
+            e = min(P, s + positions)
+            idx = self.idx[s * K:e * K]
+            w = self.weight[s * K:e * K]
+            nz = w != 0
+            inp = idx[nz]
+            col = torch.arange(idx.shape[0], device=idx.device).unsqueeze(1).expand_as(idx)[nz]
+            if inp.numel():
+                lo, hi = int(inp.min()), int(inp.max()) + 1
+            else:
+                lo, hi = 0, 1
+            coo = torch.sparse_coo_tensor(torch.stack([inp - lo, col]), w[nz], (hi - lo, (e - s) * K),
+                                          check_invariants=False).coalesce()
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
+                out.append((s, e, lo, hi, coo.to_sparse_csr()))
+        self.chunk_cache[positions] = out
+        return out
+
     def nbytes(self) -> int:
-        """Memory held by the plan's tensors (bytes)."""
+        """Memory held by the plan's tensors, built chunk transposes included (bytes)."""
         n = self.idx.numel() * self.idx.element_size() + self.weight.numel() * self.weight.element_size()
-        st = self.st
-        n += sum(t.numel() * t.element_size() for t in (st.crow_indices(), st.col_indices(), st.values()))
+        for chunks in self.chunk_cache.values():
+            for *_, st in chunks:
+                n += sum(t.numel() * t.element_size() for t in (st.crow_indices(), st.col_indices(), st.values()))
         return n
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "SamplingPlan":
-        st = self.st
-        if dtype is not None and dtype != st.dtype:
-            st = torch.sparse_csr_tensor(st.crow_indices(), st.col_indices(), st.values().to(dtype), st.shape)
+        """A copy on ``device`` with weights of ``dtype`` (chunk transposes are rebuilt lazily)."""
         return SamplingPlan(self.in_hw, self.out_hw, self.kernel_size, self.idx.to(device),
-                            self.weight.to(device=device, dtype=dtype), st.to(device))
+                            self.weight.to(device=device, dtype=dtype))
 
 
 def sample_positions(offsets: Tensor, in_hw: Pair, kernel_size: Pair, stride: Pair, padding: Pair,
@@ -108,17 +146,8 @@ def build_plan(offsets: Tensor, mask: Tensor | None, in_hw: Pair, kernel_size: P
     ok = ok & (w != 0)
     w = torch.where(ok, w, torch.zeros_like(w))
     idx = torch.where(ok, cy * W + cx, torch.zeros_like(cy)).long()
-    idx = idx.reshape(-1, 4)
-    w = w.reshape(-1, 4)
-    N = idx.shape[0]
-    rows = torch.arange(N, device=idx.device).repeat_interleave(4)
-    keep = ok.reshape(-1)
-    coo = torch.sparse_coo_tensor(torch.stack([idx.reshape(-1)[keep], rows[keep]]), w.reshape(-1)[keep],
-                                  (H * W, N), check_invariants=False).coalesce()
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
-        st = coo.to_sparse_csr()
-    return SamplingPlan((H, W), (Ho, Wo), tuple(kernel_size), idx.contiguous(), w.contiguous(), st)
+    return SamplingPlan((H, W), (Ho, Wo), tuple(kernel_size), idx.reshape(-1, 4).contiguous(),
+                        w.reshape(-1, 4).contiguous())
 
 
 def _rows(x: Tensor) -> Tensor:
@@ -127,15 +156,23 @@ def _rows(x: Tensor) -> Tensor:
     return x.permute(0, 2, 3, 1).contiguous().view(B, H * W, C)
 
 
-def _gather(plan: SamplingPlan, xb: Tensor) -> Tensor:
-    """``cols (N, C) = S @ xb`` for one image ``xb (H*W, C)``."""
-    return F.embedding_bag(plan.idx, xb, per_sample_weights=plan.weight, mode="sum")
+def _gather(plan: SamplingPlan, xb: Tensor, start: int, end: int) -> Tensor:
+    """Columns ``(end - start, K * C)`` of output positions ``[start, end)`` for one image ``xb (H*W, C)``."""
+    K = plan.taps
+    cols = F.embedding_bag(plan.idx[start * K:end * K], xb, per_sample_weights=plan.weight[start * K:end * K],
+                           mode="sum")
+    return cols.view(end - start, K * xb.shape[1])
+
+
+def chunk_positions(plan: SamplingPlan, channels: int, element_size: int) -> int:
+    """Output positions per chunk so that one chunk of columns is about :data:`CHUNK_BYTES`."""
+    return max(16, CHUNK_BYTES // (plan.taps * channels * element_size))
 
 
 class _FixedOffsetConv(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,  # type: ignore[override]
-                save_columns: bool) -> Tensor:
+                positions: int) -> Tensor:
         B, C, H, W = x.shape
         Cout = weight.shape[0]
         K = plan.taps
@@ -143,19 +180,18 @@ class _FixedOffsetConv(torch.autograd.Function):
         xr = _rows(x)
         wm = weight.permute(2, 3, 1, 0).reshape(K * C, Cout)
         out = torch.empty(B, Ho * Wo, Cout, dtype=x.dtype, device=x.device)
-        cols_all = []
+        chunks = plan.chunks(positions)
         for b in range(B):
-            cols = _gather(plan, xr[b]).view(Ho * Wo, K * C)
-            if bias is not None:
-                torch.addmm(bias, cols, wm, out=out[b])
-            else:
-                torch.mm(cols, wm, out=out[b])
-            if save_columns and weight.requires_grad:
-                cols_all.append(cols)
+            for s, e, *_ in chunks:
+                cols = _gather(plan, xr[b], s, e)
+                if bias is not None:
+                    torch.addmm(bias, cols, wm, out=out[b, s:e])
+                else:
+                    torch.mm(cols, wm, out=out[b, s:e])
         ctx.plan = plan
-        ctx.cols = cols_all
+        ctx.positions = positions
         ctx.has_bias = bias is not None
-        ctx.save_for_backward(xr if (weight.requires_grad and not save_columns) else None, wm)
+        ctx.save_for_backward(xr if weight.requires_grad else None, wm)
         ctx.in_shape = (B, C, H, W)
         return out.view(B, Ho, Wo, Cout).permute(0, 3, 1, 2)
 
@@ -165,25 +201,24 @@ class _FixedOffsetConv(torch.autograd.Function):
         plan: SamplingPlan = ctx.plan
         xr, wm = ctx.saved_tensors
         B, C, H, W = ctx.in_shape
-        K = plan.taps
         kh, kw = plan.kernel_size
-        Ho, Wo = plan.out_hw
         Cout = wm.shape[1]
         g = _rows(grad_out)  # (B, Ho*Wo, Cout)
         need_x, need_w, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
         gx = gw = gb = None
         if need_x:
-            gx = torch.empty(B, H * W, C, dtype=g.dtype, device=g.device)
+            gx = torch.zeros(B, H * W, C, dtype=g.dtype, device=g.device)
         if need_w:
-            gwm = torch.zeros(K * C, Cout, dtype=g.dtype, device=g.device)
+            gwm = torch.zeros(kh * kw * C, Cout, dtype=g.dtype, device=g.device)
+        wmt = wm.t()
+        chunks = plan.chunks(ctx.positions)
         for b in range(B):
-            if need_w:
-                cols = ctx.cols[b] if ctx.cols else _gather(plan, xr[b]).view(Ho * Wo, K * C)
-                gwm.addmm_(cols.t(), g[b])
-            if need_x:
-                gcols = torch.mm(g[b], wm.t()).view(Ho * Wo * K, C)
-                gx[b] = plan.st @ gcols
-        ctx.cols = None
+            for s, e, lo, hi, st in chunks:
+                gc = g[b, s:e]
+                if need_w:  # recompute the chunk's columns (cheap gather, stays in cache)
+                    gwm.addmm_(_gather(plan, xr[b], s, e).t(), gc)
+                if need_x:
+                    gx[b, lo:hi].addmm_(st, torch.mm(gc, wmt).view(-1, C))
         if need_x:
             gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
         if need_w:
@@ -194,11 +229,13 @@ class _FixedOffsetConv(torch.autograd.Function):
 
 
 def fixed_offset_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,
-                        save_columns: bool = True) -> Tensor:
+                        positions: int | None = None) -> Tensor:
     """Convolution of ``x (B, C, H, W)`` with ``weight (Cout, C, kh, kw)`` sampled by ``plan`` (groups = 1).
 
-    ``save_columns=False`` recomputes the gathered columns in backward instead of keeping
-    them (``B * Ho*Wo * K * C`` values) between forward and backward.
+    Work is done in chunks of ``positions`` output positions (default: about
+    :data:`CHUNK_BYTES` of columns per chunk): gather, GEMM and scatter of a chunk stay in
+    cache, and the columns are recomputed in backward instead of being stored (no
+    ``Ho*Wo*K*C`` buffer is kept between forward and backward).
     Returns ``(B, Cout, Ho, Wo)`` with channels-last strides.
     """
     if x.dim() != 4:
@@ -210,7 +247,9 @@ def fixed_offset_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: Sa
                          f"kernel {plan.kernel_size} (the fast backend supports groups=1 only)")
     if plan.weight.dtype != x.dtype or plan.idx.device != x.device:
         raise ValueError(f"plan is {plan.weight.dtype} on {plan.idx.device}, input is {x.dtype} on {x.device}")
-    return _FixedOffsetConv.apply(x, weight, bias, plan, save_columns)
+    if positions is None:
+        positions = chunk_positions(plan, x.shape[1], x.element_size())
+    return _FixedOffsetConv.apply(x, weight, bias, plan, int(positions))
 
 
 def deform_conv2d_reference(x: Tensor, weight: Tensor, bias: Tensor | None, offsets: Tensor, mask: Tensor | None,
