@@ -43,17 +43,24 @@ def upright_rotation(R: np.ndarray) -> np.ndarray:
 
 
 def rig_radius(camera) -> float:
-    """Largest distance of a ray origin from the camera centre (0 for central cameras)."""
+    """Largest distance of a ray origin from the camera centre (0 for central cameras).
+
+    Evaluated on a 129 x 65 grid of pixels spanning the image (exact for the non-central panorama,
+    whose origins depend on the column only through a smooth function).
+    """
     if getattr(camera, "central", True):
         return 0.0
-    rays = camera.unproject_grid(dtype=torch.float64)
+    u = torch.linspace(0.5, camera.width - 0.5, 129, dtype=torch.float64)
+    v = torch.linspace(0.5, camera.height - 0.5, 65, dtype=torch.float64)
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    rays = camera.unproject(torch.stack([uu, vv], -1))
     o = rays.origin[rays.valid]
     return float(o.norm(dim=-1).max()) if o.numel() else 0.0
 
 
 def place_camera(scene: Scene, camera, seed: int | np.random.Generator, rotation="upright",
                  max_tilt_deg: float = 30.0, height_range: tuple[float, float] = (1.0, 1.8),
-                 margin: float = 0.5, radius: float | None = None, max_tries: int = 2000) -> np.ndarray:
+                 margin: float = 0.3, radius: float | None = None, max_tries: int = 2000) -> np.ndarray:
     """A random free camera pose ``(4, 4)`` (camera-to-world) in ``scene``.
 
     The camera centre lies inside the floor polygon, at least ``margin + rig radius`` from every wall and

@@ -243,7 +243,7 @@ def _furnish(b: _Builder) -> None:
 
     # wall furniture: bed, wardrobe, desk, bookcase, sofa
     kinds = ["bed", "wardrobe", "desk", "bookcase", "sofa", "bookcase", "desk"]
-    for _ in range(int(rng.integers(2, 6))):
+    for _ in range(int(rng.integers(3, 8))):
         kind = kinds[int(rng.integers(len(kinds)))]
         if kind == "bed":
             w, d, hh = rng.uniform(0.9, 1.8), rng.uniform(1.9, 2.1), rng.uniform(0.45, 0.6)
@@ -296,7 +296,7 @@ def _furnish(b: _Builder) -> None:
             _add_parts(b, centre, yaw, parts, "sofa", inst, [mat])
 
     # free-standing: tables with chairs, single chairs, sofas
-    for _ in range(int(rng.integers(0, 4))):
+    for _ in range(int(rng.integers(1, 5))):
         kind = ["table", "table", "chair", "sofa"][int(rng.integers(4))]
         if kind == "table":
             w, d, hh = rng.uniform(0.8, 1.8), rng.uniform(0.6, 1.0), rng.uniform(0.72, 0.78)
