@@ -1,0 +1,255 @@
+"""HoLiNet -> MPP -> PVG: the visual gyroscope of thesis Ch. 6 and :func:`stabilise` over a sequence.
+
+For each frame (equirectangular RGB), with ``R = R_ref_cur`` (see :mod:`.angles`):
+
+1. *Tilt*: the up vectors of the frame and of the reference from the horizon heat maps
+   (:func:`fit_horizon` on HoLiNet's sigmoid outputs, or any ``horizon_fn``), as rotations
+   ``T = tilt_rotation(up)`` that make each image upright.
+2. *Yaw* (MPP): ``R = T_ref.T R_y(yaw) T_cur``, yaw found by :func:`mpp_yaw` about the reference's vertical.
+3. *Refinement* (PVG): all three angles by :func:`pvg_refine`, starting from step 2.
+
+The photometric steps run on grey images resized to ``2 work_height x work_height``. A frame that is
+black/flat, has the wrong size or makes a solver return non-finite values gets a record with
+``status = "no_estimate"`` and a ``reason``; the sequence goes on.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .angles import matrix_to_euler, tilt_rotation, up_vector
+from .horizon import HorizonFitOptions, fit_horizon
+from .mpp import mpp_samples, mpp_yaw
+from .pvg import pvg_refine
+from .sampling import rotate_equirect
+
+HorizonFn = Callable[[Tensor], tuple[Tensor, Tensor]]
+
+
+@dataclass
+class GyroscopeOptions:
+    """Parameters of the pipeline (thesis values where it gives them)."""
+
+    work_height: int = 128             # photometric steps on 2h x h grey images
+    model_height: int = 128            # HoLiNet input 2h x h (reference code: 256 x 128)
+    use_mpp: bool = True
+    mpp_level: int = 3                 # n = 3 (thesis)
+    lambda_g: float = 0.325            # thesis
+    mpp_tries: int = 4
+    mpp_max_iter: int = 30
+    use_pvg: bool = True
+    pvg_level: int = 5                 # n = 5 (thesis)
+    pvg_blur: Sequence[float] = (4.0, 1.5, 0.5)
+    pvg_max_iter: int = 20
+    min_std: float = 1e-3              # grey-level std below this = black/flat frame: no estimate
+    horizon: dict = field(default_factory=dict)  # HorizonFitOptions overrides
+
+
+def model_horizon_fn(model: torch.nn.Module, height: int = 128) -> HorizonFn:
+    """Wrap a HoLiNet-like model (outputs ``"horizon"``, ``"vp"`` logits) into a ``horizon_fn``."""
+    def fn(images: Tensor) -> tuple[Tensor, Tensor]:
+        p = next(model.parameters())
+        x = F.interpolate(images.to(p.dtype).to(p.device), size=(height, 2 * height), mode="bilinear",
+                          align_corners=False, antialias=True)
+        was = model.training
+        model.eval()
+        with torch.no_grad():
+            out = model(x)
+        model.train(was)
+        return torch.sigmoid(out["horizon"]).float(), torch.sigmoid(out["vp"]).float()
+    return fn
+
+
+def _resize(images: Tensor, height: int) -> Tensor:
+    if images.shape[-2] == height:
+        return images
+    return F.interpolate(images, size=(height, 2 * height), mode="bilinear", align_corners=False, antialias=True)
+
+
+class Gyroscope:
+    """Estimate ``R_ref_cur`` of frames w.r.t. one reference panorama.
+
+    Args:
+        horizon_fn: ``images (B, 3, H, W) -> (horizon, vp)`` probability maps ``(B, 1, h, w)``; e.g.
+            :func:`model_horizon_fn` of a trained HoLiNet. ``None`` assumes every frame is upright
+            (tilt 0) and lets MPP + PVG do all the work (only sensible for small tilts).
+        options: :class:`GyroscopeOptions`.
+    """
+
+    def __init__(self, horizon_fn: HorizonFn | None = None, options: GyroscopeOptions | None = None) -> None:
+        self.horizon_fn = horizon_fn
+        self.o = options or GyroscopeOptions()
+        self.hopts = HorizonFitOptions(**self.o.horizon)
+        self.reference: Tensor | None = None
+
+    # -- steps ---------------------------------------------------------------------------------
+    def up_vectors(self, images: Tensor) -> tuple[Tensor, Tensor]:
+        """``(B, 3)`` up vectors (camera frame) and ``(B,)`` validity of ``images (B, 3, H, W)``."""
+        B = images.shape[0]
+        if self.horizon_fn is None:
+            return up_vector(images).expand(B, 3).clone(), torch.ones(B, dtype=torch.bool)
+        hl, vp = self.horizon_fn(images)
+        res = fit_horizon(hl, vp, self.hopts)
+        return res["up"].to(images.dtype).cpu(), res["valid"].cpu()
+
+    def set_reference(self, image: Tensor) -> None:
+        """Fix the reference panorama ``(3, H, W)`` (or ``(1, 3, H, W)``): its tilt and MPP samples."""
+        if image is None:
+            raise ValueError("gyroscope: a reference image is required (got None)")
+        if image.ndim == 3:
+            image = image.unsqueeze(0)
+        _check_frame(image[0])
+        if _flat(image[0], self.o.min_std):
+            raise ValueError("gyroscope: the reference image is black/flat; choose another reference frame")
+        self.reference = image.float()
+        self.ref_work = _resize(self.reference, self.o.work_height)
+        up, ok = self.up_vectors(self.reference)
+        if not bool(ok[0]):
+            raise ValueError("gyroscope: no horizon found in the reference image; choose another reference")
+        self.ref_up = up[0]
+        self.T_ref = tilt_rotation(self.ref_up)
+        self.ref_mpp = mpp_samples(self.ref_work, self.o.mpp_level)[1] if self.o.use_mpp else None
+
+    def estimate(self, images: Tensor) -> dict[str, Tensor]:
+        """Orientations of ``images (B, 3, H, W)`` (same size as the reference).
+
+        Returns ``{"rotation": (B, 3, 3) R_ref_cur, "roll", "pitch", "yaw": (B,) radians, "up": (B, 3),
+        "horizon_valid": (B,) bool, "mpp_cost", "pvg_cost": (B,)}``.
+        """
+        if self.reference is None:
+            raise RuntimeError("gyroscope: call set_reference(image) before estimate()")
+        images = images.float()
+        work = _resize(images, self.o.work_height)
+        up, ok = self.up_vectors(images)
+        T_cur = tilt_rotation(up)
+        R = self.T_ref.transpose(-1, -2) @ T_cur
+        axis = self.T_ref[1, :]  # T_ref.T @ y: the reference's vertical
+        B = images.shape[0]
+        mpp_cost = torch.full((B,), float("nan"))
+        pvg_cost = torch.full((B,), float("nan"))
+        if self.o.use_mpp:
+            r = mpp_yaw(work, self.ref_work, R, axis, level=self.o.mpp_level, lambda_g=self.o.lambda_g,
+                        tries=self.o.mpp_tries, max_iter=self.o.mpp_max_iter, reference_samples=self.ref_mpp)
+            R, mpp_cost = r.rotation, r.cost
+        if self.o.use_pvg:
+            r = pvg_refine(work, self.ref_work, R, level=self.o.pvg_level, blur_px=self.o.pvg_blur,
+                           max_iter=self.o.pvg_max_iter)
+            R, pvg_cost = r.rotation, r.cost
+        roll, pitch, yaw = matrix_to_euler(R)
+        return {"rotation": R, "roll": roll, "pitch": pitch, "yaw": yaw, "up": up, "horizon_valid": ok,
+                "mpp_cost": mpp_cost, "pvg_cost": pvg_cost}
+
+
+def _check_frame(img: Tensor) -> None:
+    if img.ndim != 3 or img.shape[0] != 3 or img.shape[-1] != 2 * img.shape[-2]:
+        raise ValueError(f"expected an RGB equirectangular panorama (3, H, 2H), got shape {tuple(img.shape)}")
+
+
+def _flat(img: Tensor, min_std: float) -> bool:
+    return not bool(torch.isfinite(img).all()) or float(img.float().std()) < min_std
+
+
+@dataclass
+class FrameEstimate:
+    """One frame's record (angles in degrees, ``rotation`` = ``R_ref_cur`` as nested lists)."""
+
+    index: int
+    name: str
+    status: str                        # "ok" | "no_estimate"
+    reason: str = ""
+    roll: float = float("nan")
+    pitch: float = float("nan")
+    yaw: float = float("nan")
+    rotation: list | None = None
+    horizon_valid: bool = False
+    mpp_cost: float = float("nan")
+    pvg_cost: float = float("nan")
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def stabilise(frames: Iterable[Tensor], reference: Tensor, horizon_fn: HorizonFn | None = None,
+              options: GyroscopeOptions | None = None, names: Sequence[str] | None = None, batch_size: int = 4,
+              on_frame: Callable[[FrameEstimate, Tensor, Tensor | None], None] | None = None,
+              progress: bool = False) -> list[FrameEstimate]:
+    """Estimate the rotation of every frame w.r.t. ``reference`` and stabilise it.
+
+    Args:
+        frames: iterable of ``(3, H, W)`` RGB tensors in ``[0, 1]``.
+        reference: ``(3, H, W)`` reference panorama (required: ``None`` raises ``ValueError``).
+        horizon_fn: tilt source (see :class:`Gyroscope`); ``None`` = frames assumed upright.
+        names: per-frame names for the records (default ``frame_000000`` ...).
+        on_frame: ``callback(record, frame, stabilised or None)`` called in order (writers, viewers).
+    Returns:
+        one :class:`FrameEstimate` per frame; the stabilised frame is
+        ``rotate_equirect(frame, R.T)`` with ``R = record.rotation``.
+    """
+    if reference is None:
+        raise ValueError("stabilise: a reference image is required (got None)")
+    gyro = Gyroscope(horizon_fn, options)
+    gyro.set_reference(reference)
+    H, W = reference.shape[-2:]
+    records: list[FrameEstimate] = []
+    pending: list[tuple[int, str, Tensor]] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(desc="stabilise", unit="frame")
+
+    def flush() -> None:
+        if not pending:
+            return
+        batch = torch.stack([f for _, _, f in pending]).float()
+        try:
+            est = gyro.estimate(batch)
+            err = None
+        except Exception as e:  # a solver failure must not stop the sequence
+            est, err = None, f"{type(e).__name__}: {e}"
+        for k, (i, name, frame) in enumerate(pending):
+            if est is None or not bool(torch.isfinite(est["rotation"][k]).all()):
+                rec = FrameEstimate(i, name, "no_estimate", err or "non-finite rotation")
+                stab = None
+            else:
+                R = est["rotation"][k]
+                rec = FrameEstimate(i, name, "ok", "", *(math.degrees(float(est[a][k])) for a in ("roll", "pitch", "yaw")),
+                                    rotation=R.tolist(), horizon_valid=bool(est["horizon_valid"][k]),
+                                    mpp_cost=float(est["mpp_cost"][k]), pvg_cost=float(est["pvg_cost"][k]))
+                stab = rotate_equirect(frame[None].float(), R.T)[0]
+            _emit(rec, frame, stab)
+        pending.clear()
+
+    def _emit(rec: FrameEstimate, frame: Tensor, stab: Tensor | None) -> None:
+        records.append(rec)
+        if on_frame is not None:
+            on_frame(rec, frame, stab)
+        if bar is not None:
+            bar.update(1)
+
+    for i, frame in enumerate(frames):
+        name = names[i] if names is not None and i < len(names) else f"frame_{i:06d}"
+        if frame is None:
+            flush()
+            _emit(FrameEstimate(i, name, "no_estimate", "frame could not be read"), torch.zeros(3, H, W), None)
+            continue
+        if frame.ndim != 3 or frame.shape[0] != 3 or tuple(frame.shape[-2:]) != (H, W):
+            flush()
+            _emit(FrameEstimate(i, name, "no_estimate", f"frame shape {tuple(frame.shape)} differs from the "
+                                f"reference (3, {H}, {W})"), frame, None)
+            continue
+        if _flat(frame, gyro.o.min_std):
+            flush()
+            _emit(FrameEstimate(i, name, "no_estimate", "black/flat frame (no texture to align)"), frame, None)
+            continue
+        pending.append((i, name, frame))
+        if len(pending) >= batch_size:
+            flush()
+    flush()
+    if bar is not None:
+        bar.close()
+    return records
