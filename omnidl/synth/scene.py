@@ -197,7 +197,8 @@ def _clutter_on(b: _Builder, centre_xy, yaw, w, d, top_z, count):
     rng = b.rng
     for _ in range(count):
         cw, cd, ch = rng.uniform(0.08, 0.35), rng.uniform(0.08, 0.3), rng.uniform(0.05, 0.35)
-        if cw > w - 0.05 or cd > d - 0.05:
+        ch = min(ch, b.height - 0.05 - top_z)
+        if cw > w - 0.05 or cd > d - 0.05 or ch < 0.03:
             continue
         lx = rng.uniform(-(w - cw) / 2, (w - cw) / 2)
         ly = rng.uniform(-(d - cd) / 2, (d - cd) / 2)
