@@ -19,7 +19,7 @@ Mirrors (metres, radians):
 The mirror ends at the horizontal radius ``rim_radius``; pixels that do not see the mirror
 inside the rim are invalid (the apex of the cone is excluded: its normal is undefined).
 ``project`` finds, in the plane through the axis and the point, the image radius whose
-reflected ray passes through the point (vectorised bisection to the dtype's resolution plus a
+reflected ray passes through the point (vectorised Illinois regula falsi to the dtype's resolution plus a
 differentiable Newton step). Points not reached by any reflected ray are invalid.
 Occlusion by the camera body or by the mirror itself is not modelled.
 """
@@ -33,7 +33,7 @@ from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
-from .solvers import bisect_sign_change, newton_polish
+from .solvers import bracketed_root, newton_polish
 
 MIRRORS = ("conical", "spherical")
 
@@ -143,7 +143,7 @@ class NonCentralCatadioptric(Camera):
 
         lo = torch.full_like(rho, 1e-9 * self.r_rim if self.mirror == "conical" else 0.0)
         hi = torch.full_like(rho, self.r_rim)
-        r, ok = bisect_sign_change(lambda t: residual(t, rho.detach(), z.detach()), lo, hi)
+        r, ok = bracketed_root(lambda t: residual(t, rho.detach(), z.detach()), lo, hi)
         # the point must lie ahead on the reflected ray, not on its backward extension
         with torch.no_grad():
             p_rho, p_z, d_rho, d_z = self.axial_ray(r)

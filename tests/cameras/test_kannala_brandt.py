@@ -95,3 +95,20 @@ def test_calibration_file_errors(tmp_path):
     word.write_text(F195_FILE.replace("287", "f", 1))
     with pytest.raises(ValueError, match="word.txt"):
         read_kb_calibration(word)
+
+
+def test_resized_with_padding_is_eq_7_3():
+    # CalibratedConvolutions' reference values: F195 on a 541 x 480 feature map with 2 px right padding
+    # gives cx' = 270, fx' = 143.5 (Eq. 7.3 with s = (1080 + 2) / 541 = 2)
+    cam = build({"type": "kannala_brandt", "width": 1080, "height": 960, "fx": 287.0, "fy": 287.0, "cx": 540.0,
+                 "cy": 480.0, "k1": 3.37012024344156e-19, "k2": -3.543830680552053e-05,
+                 "k3": 9.999999999924497e-08, "k4": -6.883696004705416e-11, "max_fov": math.radians(195)})
+    small = cam.resized(541, 480, pad_right=2)
+    direct = cam.replace(width=541, height=480, fx=143.5, fy=143.5, cx=270.0, cy=240.0)
+    dirs, _ = _random_dirs(300, math.radians(97), 3)
+    pts = torch.from_numpy(dirs)
+    uv_a, va = small.project(pts)
+    uv_b, vb = direct.project(pts)
+    assert torch.equal(va, vb) and (uv_a - uv_b).abs().max() < 1e-9
+    uv = direct.sample_points(100, generator=torch.Generator().manual_seed(0))
+    assert (small.unproject(uv).direction - direct.unproject(uv).direction).abs().max() < 1e-12
