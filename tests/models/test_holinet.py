@@ -1,0 +1,28 @@
+import pytest
+import torch
+
+from omnidl.models import create_model
+from omnidl.nn import ProjectedConv2d
+
+
+@pytest.mark.parametrize("conv", ["std", "equi"])
+def test_output_shapes_and_names(conv):
+    torch.manual_seed(0)
+    m = create_model("holinet", backbone="resnet18", width=0.125, conv=conv).eval()
+    with torch.no_grad():
+        out = m(torch.rand(1, 3, 32, 64))
+    assert out["horizon"].shape == (1, 1, 16, 32) and out["vp"].shape == (1, 1, 16, 32)
+    assert out["aux_16"].shape == (1, 2, 2, 4) and out["aux_8"].shape == (1, 2, 4, 8)
+    assert out["aux_4"].shape == (1, 2, 8, 16)
+    assert all(torch.isfinite(v).all() for v in out.values())
+    n_proj = sum(isinstance(x, ProjectedConv2d) and x.camera is not None for x in m.modules())
+    big = [x for x in m.modules() if isinstance(x, torch.nn.Conv2d) and max(x.kernel_size) > 1]
+    assert n_proj == (len(big) if conv == "equi" else 0)
+
+
+def test_bad_inputs_and_options():
+    m = create_model("holinet", backbone="resnet18", width=0.125, conv="std")
+    with pytest.raises(ValueError, match="multiples of 32"):
+        m(torch.rand(1, 3, 40, 80))
+    with pytest.raises(ValueError, match="conv"):
+        create_model("holinet", conv="deform")
