@@ -23,6 +23,12 @@ from omnidl.cameras.base import Rays, safe_norm
 _PARALLEL_EPS = 1e-12
 
 
+def _cross(a: Tensor, b: Tensor) -> Tensor:
+    """Cross product over the last dim with full broadcasting of the leading dims."""
+    a, b = torch.broadcast_tensors(a, b)
+    return torch.linalg.cross(a, b)
+
+
 def _check(line: Tensor, name: str = "line") -> Tensor:
     if line.shape[-1] != 6:
         raise ValueError(f"{name} must have shape (..., 6) = (direction, moment), got {tuple(line.shape)}")
@@ -37,14 +43,14 @@ def split(line: Tensor) -> tuple[Tensor, Tensor]:
 
 def line_from_points(p: Tensor, q: Tensor, normalize: bool = True) -> Tensor:
     """The line through ``p`` and ``q`` (``(..., 3)`` each), oriented from ``p`` to ``q``: ``(q - p, p x q)``."""
-    line = torch.cat([q - p, torch.linalg.cross(p, q, dim=-1)], -1)
+    line = torch.cat([q - p, _cross(p, q)], -1)
     return normalize_line(line) if normalize else line
 
 
 def line_from_point_direction(point: Tensor, direction: Tensor, normalize: bool = True) -> Tensor:
     """The line through ``point`` along ``direction`` (``(..., 3)`` each): ``(d, p x d)``."""
     point, direction = torch.broadcast_tensors(point, direction)
-    line = torch.cat([direction, torch.linalg.cross(point, direction, dim=-1)], -1)
+    line = torch.cat([direction, _cross(point, direction)], -1)
     return normalize_line(line) if normalize else line
 
 
@@ -86,14 +92,14 @@ def point_on_line(line: Tensor) -> Tensor:
     """The point of ``line`` closest to the origin ``(..., 3)``: ``d x m / |d|^2``."""
     d, m = split(line)
     dd = (d * d).sum(-1, keepdim=True)
-    return torch.linalg.cross(d, m, dim=-1) / torch.where(dd > 0, dd, torch.ones_like(dd))
+    return _cross(d, m) / torch.where(dd > 0, dd, torch.ones_like(dd))
 
 
 def point_line_distance(points: Tensor, line: Tensor) -> Tensor:
     """Distance ``(...)`` from ``points (..., 3)`` to ``line (..., 6)``: ``|X x d - m| / |d|``."""
     d, m = split(line)
     nd = safe_norm(d)
-    return safe_norm(torch.linalg.cross(points, d, dim=-1) - m) / torch.where(nd > 0, nd, torch.ones_like(nd))
+    return safe_norm(_cross(points, d) - m) / torch.where(nd > 0, nd, torch.ones_like(nd))
 
 
 def project_point(points: Tensor, line: Tensor) -> tuple[Tensor, Tensor]:
@@ -111,13 +117,13 @@ def line_distance(a: Tensor, b: Tensor) -> Tensor:
     a, b = normalize_line(a), normalize_line(b)
     da, ma = split(a)
     db, mb = split(b)
-    cross = torch.linalg.cross(da, db, dim=-1)
+    cross = _cross(da, db)
     sin = safe_norm(cross)
     parallel = sin <= torch.finfo(sin.dtype).eps ** 0.5  # |side| / sin is ill-conditioned there
     skew = side(a, b).abs() / torch.where(parallel, torch.ones_like(sin), sin)
     sgn = torch.where((da * db).sum(-1, keepdim=True) < 0, -torch.ones_like(sin).unsqueeze(-1),
                       torch.ones_like(sin).unsqueeze(-1))
-    par = safe_norm(torch.linalg.cross(da, ma - sgn * mb, dim=-1))
+    par = safe_norm(_cross(da, ma - sgn * mb))
     return torch.where(parallel, par, skew)
 
 
@@ -143,13 +149,13 @@ class ClosestPoints(NamedTuple):
 
 def _closest_params(pa: Tensor, da: Tensor, pb: Tensor, db: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Parameters ``(ta, tb)`` of the closest points of ``pa + ta da`` and ``pb + tb db`` (unit d's)."""
-    n = torch.linalg.cross(da, db, dim=-1)
+    n = _cross(da, db)
     nn2 = (n * n).sum(-1)
     parallel = nn2 <= _PARALLEL_EPS
     safe = torch.where(parallel, torch.ones_like(nn2), nn2)
     w = pb - pa
-    ta = (torch.linalg.cross(w, db, dim=-1) * n).sum(-1) / safe
-    tb = (torch.linalg.cross(w, da, dim=-1) * n).sum(-1) / safe
+    ta = (_cross(w, db) * n).sum(-1) / safe
+    tb = (_cross(w, da) * n).sum(-1) / safe
     # parallel: keep a's reference point, project it on b
     tb_par = ((pa - pb) * db).sum(-1)
     ta = torch.where(parallel, torch.zeros_like(ta), ta)
@@ -207,5 +213,5 @@ def transform_line(line: Tensor, R: Tensor, t: Tensor | None = None) -> Tensor:
     m2 = torch.einsum("...ij,...j->...i", R, m)
     if t is not None:
         t, d2 = torch.broadcast_tensors(t, d2)
-        m2 = m2 + torch.linalg.cross(t, d2, dim=-1)
+        m2 = m2 + _cross(t, d2)
     return torch.cat(torch.broadcast_tensors(d2, m2), -1)

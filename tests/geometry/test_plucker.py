@@ -156,3 +156,16 @@ def test_gradcheck(gen):
     P.point_line_distance(a, L).backward()
     assert torch.isfinite(a.grad).all()
     assert not math.isnan(float(P.line_distance(L, L)))
+
+
+def test_broadcasting(gen):
+    """One line against many points / lines (leading dims broadcast)."""
+    p, q = rand_points(1, gen)[0], rand_points(1, gen)[0]
+    line = P.line_from_points(p, q)  # (6,)
+    t = torch.linspace(-2, 3, 7, dtype=D)[:, None]
+    X = p + t * (q - p)  # (7, 3) on the line
+    assert P.point_line_distance(X, line).shape == (7,) and P.point_line_distance(X, line).max() < 1e-12
+    others = P.line_from_points(rand_points(5, gen), rand_points(5, gen))
+    assert P.line_distance(line, others).shape == (5,)
+    assert P.closest_points_lines(line, others).point_a.shape == (5, 3)
+    assert P.line_from_point_direction(X, q - p).shape == (7, 6)
