@@ -214,3 +214,31 @@ def test_converted_fourier_block_matches_official_formula():
     x = torch.randn(1, 64, 8, 16)
     with torch.no_grad():
         torch.testing.assert_close(fb(x), _official_fastfc(official, prefix + ".block.0", x), atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("overrides", [["model=fredsnet"], ["model=fredsnet_small", "loss=fredsnet_depth"],
+                                       ["model=fredsnet", "loss=fredsnet_recall", "loss.alpha_depth=3"]])
+def test_hydra_configs_compose_and_build(overrides):
+    import os
+
+    from hydra import compose, initialize_config_dir
+
+    from omnidl.engine.build import build_loss, build_metrics
+    from omnidl.engine.config import register_configs
+    from omnidl.losses.joint import JointLoss
+
+    register_configs()
+    root = os.path.join(os.path.dirname(__file__), "..", "..", "configs")
+    with initialize_config_dir(config_dir=os.path.abspath(root), version_base="1.3"):
+        cfg = compose("train", overrides=overrides + ["data=folder"])
+    assert cfg.model.name == "fredsnet" and cfg.model.backbone == "resnet18"
+    loss = build_loss(cfg)
+    assert isinstance(loss, JointLoss)
+    if "loss=fredsnet_depth" in overrides:
+        assert loss.active == ["depth"]
+    if "loss.alpha_depth=3" in overrides:
+        assert loss.alpha["depth"] == 3.0 and loss.seg.kind == "recall"
+    metrics = build_metrics(cfg)
+    metrics.update({"depth": torch.ones(1, 1, 2, 2), "semantic": torch.zeros(1, 14, 2, 2)},
+                   {"depth": torch.ones(1, 1, 2, 2), "semantic": torch.ones(1, 2, 2, dtype=torch.long)})
+    assert {"mre", "delta1", "miou", "macc"} <= set(metrics.compute())
