@@ -5,7 +5,7 @@ Conventions and the API are documented in ``docs/geometry.md``.
 """
 from .cubemap import (FACE_NAMES, cube_face_camera, cube_face_rotations, cubemap_to_camera, cubemap_to_equirect,
                       equirect_to_cubemap)
-from .line_from_rays import LineFit, LineStatus, line_from_rays
+from .line_from_rays import Y_AXIS, Z_AXIS, LineFit, LineStatus, camera_axis, line_from_rays
 from .panorama import rotate_panorama
 from .plucker import (ClosestPoints, closest_points_line_ray, closest_points_lines, line_distance,
                       line_from_point_direction, line_from_points, lines_from_rays, normalize_line,
@@ -26,7 +26,7 @@ __all__ = [
     # Plücker lines
     "line_from_points", "line_from_point_direction", "lines_from_rays", "normalize_line", "plucker_identity",
     "side", "point_on_line", "point_line_distance", "project_point", "line_distance", "closest_points_lines",
-    "closest_points_line_ray", "ClosestPoints", "transform_line", "line_from_rays", "LineFit", "LineStatus",
+    "closest_points_line_ray", "ClosestPoints", "transform_line", "line_from_rays", "LineFit", "LineStatus", "camera_axis", "Y_AXIS", "Z_AXIS",
     # rotations
     "axis_angle_to_matrix", "matrix_to_axis_angle", "quaternion_to_matrix", "matrix_to_quaternion",
     "rotation_x", "rotation_y", "rotation_z", "euler_to_matrix", "matrix_to_euler", "rotation_angle",

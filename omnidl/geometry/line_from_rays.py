@@ -25,6 +25,7 @@ many candidate 4-ray samples at once).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -37,6 +38,8 @@ from .plucker import line_distance, normalize_line, point_line_distance, side
 
 #: revolution axis of the non-central panorama (camera ``y``, through the origin)
 Y_AXIS = (0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+#: revolution axis of the non-central catadioptric cameras (camera ``z``, through the origin)
+Z_AXIS = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 
 
 class LineStatus(IntEnum):
@@ -237,3 +240,30 @@ def line_from_rays(rays: Rays | Tensor, valid: Tensor | None = None, axis: Tenso
     residual = torch.sqrt(((res * res) * w).sum(-1) / w.sum(-1).clamp_min(1))
     line = torch.where(ok.unsqueeze(-1), line, torch.zeros_like(line))
     return LineFit(line=line, ok=ok, status=status, residual=residual, other=other, singular_values=S)
+
+
+def camera_axis(camera, max_rays: int = 400, tol: float = 1e-8) -> Tensor:
+    """The line ``(6,)`` float64 that every ray of an axial (non-central) camera meets.
+
+    Found as the null vector of the side-operator constraints of the valid rays of about
+    ``max_rays`` pixels on a regular grid over the image. Raises ``ValueError`` for a central camera (its
+    rays meet in a point, every line through it qualifies) or when no common line exists.
+    """
+    n = max(3, int(math.ceil(math.sqrt(max_rays))))
+    u = (torch.arange(n, dtype=torch.float64) + 0.5) * (camera.width / n)
+    v = (torch.arange(n, dtype=torch.float64) + 0.5) * (camera.height / n)
+    uv = torch.stack(torch.meshgrid(u, v, indexing="xy"), -1).reshape(-1, 2)  # an n x n grid over the image
+    rays = camera.unproject(uv)
+    lines = normalize_line(rays.plucker()[rays.valid])
+    if len(lines) < 5:
+        raise ValueError(f"{type(camera).__name__}: fewer than 5 valid sample pixels, cannot find its axis")
+    if bool((safe_norm(lines[:, 3:]) < 1e-12).all()):
+        raise ValueError(f"{type(camera).__name__} is central: all rays meet in one point, there is no unique axis")
+    A = torch.cat([lines[:, 3:], lines[:, :3]], -1)
+    _, S, Vh = torch.linalg.svd(A, full_matrices=True)
+    S = torch.cat([S, S.new_zeros(6 - len(S))]) if len(S) < 6 else S
+    if S[5] > tol * S[0] or S[4] <= tol * S[0]:
+        raise ValueError(f"{type(camera).__name__}: its rays do not meet exactly one common line "
+                         f"(singular values {S.tolist()})")
+    axis = normalize_line(Vh[5])
+    return axis * torch.where(axis[:3].sum() < 0, -1.0, 1.0)

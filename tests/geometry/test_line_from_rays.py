@@ -123,3 +123,36 @@ def test_no_axis_returns_a_solution():
     sols = torch.stack([fit.line, fit.other])
     assert min(float(line_error(s, X)) for s in sols) < 1e-6
     assert math.isfinite(float(fit.residual))
+
+
+def test_acceptance_with_the_registered_noncentral_panorama():
+    """The same acceptance through omnidl's own camera: project the line's points, unproject the pixels."""
+    from omnidl.cameras import build
+    cam = build(type="noncentral_pano", width=1024, height=512, rc=1.0)
+    X = horizontal_line_points(4)
+    uv, valid = cam.project(X)
+    assert valid.all()
+    fit = line_from_rays(cam.unproject(uv))
+    assert bool(fit.ok) and line_error(fit.line, X) < 1e-6
+
+
+def test_axial_catadioptric_cameras_with_their_axis(gen):
+    """Non-central catadioptric cameras (axis z): camera_axis finds the axis, the line is recovered."""
+    import pytest
+
+    from omnidl.cameras import get_camera_class
+    from omnidl.geometry import Y_AXIS, Z_AXIS, camera_axis
+    pano = get_camera_class("noncentral_pano").example()
+    assert torch.allclose(camera_axis(pano), torch.tensor(Y_AXIS, dtype=D), atol=1e-9)
+    for cam in get_camera_class("noncentral_catadioptric").examples():
+        axis = camera_axis(cam)
+        assert torch.allclose(axis, torch.tensor(Z_AXIS, dtype=D), atol=1e-9)
+        r = cam.unproject(cam.sample_points(2, generator=gen))
+        ends = r.at(torch.tensor([2.0, 3.0], dtype=D))
+        X = ends[0] + torch.linspace(0.1, 0.9, 8, dtype=D)[:, None] * (ends[1] - ends[0])
+        uv, valid = cam.project(X)
+        assert valid.sum() >= 4
+        fit = line_from_rays(cam.unproject(uv), valid=valid, axis=axis)
+        assert bool(fit.ok) and line_error(fit.line, X[valid]) < 1e-6
+    with pytest.raises(ValueError, match="central"):
+        camera_axis(Equirectangular(width=16, height=8))
