@@ -129,6 +129,16 @@ def _maybe_rotating(dataset, max_deg: float, seed: int):
     return dataset
 
 
+def _maybe_cached(dataset, cfg: DictConfig):
+    """``data.cache_in_memory: true`` keeps rendered samples in memory (``data.cache_keys``: which keys)."""
+    data = cfg.get("data") or {}
+    if bool(data.get("cache_in_memory", False)):
+        from omnidl.data.cache import MemoryCache
+        keys = data.get("cache_keys")
+        return MemoryCache(dataset, list(keys) if keys else None)
+    return dataset
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Train the configured model; returns (and writes to ``<output_dir>/metrics.json``) the summary:
     ``{"monitor", "best", "best_step", "final": {...val metrics...}, "step", "epoch", "stopped_early",
@@ -161,10 +171,11 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     metrics = build_metrics(cfg)
     viz = build_viz(cfg) if main else None
 
-    train_ds = SkipCorrupt(_maybe_rotating(build_dataset(cfg, "train"), float(tc.random_rotation_deg), int(tc.seed)))
+    train_ds = SkipCorrupt(_maybe_rotating(_maybe_cached(build_dataset(cfg, "train"), cfg), float(tc.random_rotation_deg),
+                                           int(tc.seed)))
     val_ds = build_dataset(cfg, "val", required=False)
     if val_ds is not None:
-        val_ds = SkipCorrupt(val_ds)
+        val_ds = SkipCorrupt(_maybe_cached(val_ds, cfg))
     bs = int(tc.batch_size)
     sampler = _sampler(len(train_ds), int(tc.seed), dist)
     steps_per_epoch = len(sampler) // bs if len(sampler) >= bs else 1

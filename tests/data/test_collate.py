@@ -35,3 +35,21 @@ def test_nonfinite_keys():
     assert nonfinite_keys(b) == []
     b["image"][1, 0, 0, 0] = float("inf")
     assert nonfinite_keys(b) == ["image"]
+
+
+def test_memory_cache_keeps_samples_and_selected_keys():
+    from omnidl.data.cache import MemoryCache
+
+    class Counting(torch.utils.data.Dataset):
+        calls = 0
+
+        def __len__(self):
+            return 3
+
+        def __getitem__(self, i):
+            Counting.calls += 1
+            return _s(i)
+
+    ds = MemoryCache(Counting(), keys=["image"])
+    a = ds[1]
+    assert ds[1] is a and Counting.calls == 1 and set(a) == {"image", "meta"} and len(ds) == 3
