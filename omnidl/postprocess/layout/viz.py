@@ -1,0 +1,92 @@
+"""Layout pictures: wireframe overlay on the panorama (through the camera model) and a top view."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .layout import Layout
+from .rays import R_WORLD_FROM_CAM
+
+
+def project_points(points: np.ndarray, width: int, height: int, rc: float = 0.0, camera=None) -> np.ndarray:
+    """Pixels ``(..., 2)`` of layout-frame points ``(..., 3)``.
+
+    With ``camera`` its ``project`` is used (camera frame = ``R^T`` layout frame); otherwise the
+    circular panorama of radius ``rc`` in closed form: ``lon = atan2(x, y)``,
+    ``lat = atan2(z, rho - rc)``.
+    """
+    p = np.asarray(points, float)
+    if camera is not None:
+        import torch
+        pc = torch.from_numpy(p @ R_WORLD_FROM_CAM)           # R^T applied on the right: p R = (R^T p^T)^T
+        uv, _ = camera.project(pc.double())
+        return uv.numpy()
+    lon = np.arctan2(p[..., 0], p[..., 1])
+    rho = np.hypot(p[..., 0], p[..., 1])
+    lat = np.arctan2(p[..., 2], rho - rc)
+    return np.stack([(lon + math.pi) / (2 * math.pi) * width, (math.pi / 2 - lat) / math.pi * height], -1)
+
+
+def wireframe_polylines(layout: Layout, width: int, height: int, rc: float = 0.0, camera=None,
+                        samples_per_metre: int = 40) -> list[np.ndarray]:
+    """Pixel polylines ``(K, 2)`` of every ceiling/floor edge and vertical corner edge, split at the seam."""
+    lines = []
+    n = layout.n_corners
+    for h in (layout.h_ceiling, layout.h_floor):
+        for m in range(n):
+            a, b = layout.corners[m], layout.corners[(m + 1) % n]
+            k = max(2, int(np.linalg.norm(b - a) * samples_per_metre))
+            t = np.linspace(0, 1, k)[:, None]
+            P = np.concatenate([a + t * (b - a), np.full((k, 1), h)], 1)
+            lines.append(project_points(P, width, height, rc, camera))
+    for c in layout.corners:
+        z = np.linspace(layout.h_floor, layout.h_ceiling, 32)
+        P = np.concatenate([np.repeat(c[None], 32, 0), z[:, None]], 1)
+        lines.append(project_points(P, width, height, rc, camera))
+    out = []
+    for uv in lines:
+        jumps = np.flatnonzero(np.abs(np.diff(uv[:, 0])) > width / 2)
+        out += [seg for seg in np.split(uv, jumps + 1) if len(seg) >= 2]
+    return out
+
+
+def draw_wireframe(image: np.ndarray, layout: Layout, rc: float = 0.0, camera=None,
+                   color: tuple[int, int, int] = (0, 255, 0), thickness: int = 2) -> np.ndarray:
+    """RGB ``uint8 (H, W, 3)`` panorama with the layout wireframe drawn on it (a copy)."""
+    import cv2
+    img = np.ascontiguousarray(image.copy())
+    H, W = img.shape[:2]
+    if not layout.ok:
+        return img
+    for uv in wireframe_polylines(layout, W, H, rc, camera):
+        pts = np.round(uv - 0.5).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(img, [pts], False, color, thickness, lineType=cv2.LINE_AA)
+    return img
+
+
+def plot_top_view(layouts: list[Layout] | Layout, labels: list[str] | None = None, ax=None, rc: float = 0.0):
+    """Matplotlib top view of one or more layouts (metres) with the camera circle; returns the axes."""
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    if isinstance(layouts, Layout):
+        layouts = [layouts]
+    if ax is None:
+        _, ax = plt.subplots(figsize=(5, 5))
+    for i, lay in enumerate(layouts):
+        if not lay.ok:
+            continue
+        p = np.concatenate([lay.corners, lay.corners[:1]], 0)
+        ax.plot(p[:, 0], p[:, 1], "-o", ms=3, label=labels[i] if labels else None)
+        occ = lay.corners[lay.occluded] if lay.occluded.any() else np.zeros((0, 2))
+        if len(occ):
+            ax.plot(occ[:, 0], occ[:, 1], "rx")
+    t = np.linspace(0, 2 * math.pi, 100)
+    ax.plot(max(rc, 0.05) * np.cos(t), max(rc, 0.05) * np.sin(t), "k-", lw=0.8)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    if labels:
+        ax.legend()
+    return ax
