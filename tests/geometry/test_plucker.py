@@ -100,8 +100,8 @@ def test_closest_points_line_ray(gen):
     direction = rand_points(6, gen)
     cp = P.closest_points_line_ray(line, (origin, direction))
     assert (cp.t_b >= 0).all()
-    ts = torch.linspace(0, 40, 4001, dtype=D)
-    tl = torch.linspace(-40, 40, 8001, dtype=D)
+    ts = torch.linspace(0, 20, 1001, dtype=D)
+    tl = torch.linspace(-25, 25, 2501, dtype=D)
     dn = direction / direction.norm(dim=-1, keepdim=True)
     for i in range(6):
         R = origin[i] + ts[:, None] * dn[i]
