@@ -90,6 +90,17 @@ class LineFit:
     singular_values: Tensor
 
     @property
+    def conditioning(self) -> Tensor:
+        """``(...)`` ``sigma_4 / sigma_1``: how far the four strongest constraints are from dependent.
+
+        The line's error grows roughly like (ray noise) / conditioning; short segments seen
+        from far away with a small ``rc`` are ill-conditioned. Use float64 rays when it is small
+        (float32 rays alone carry ~1e-7 relative rounding).
+        """
+        return self.singular_values[..., 3] / self.singular_values[..., 0].clamp_min(torch.finfo(
+            self.singular_values.dtype).tiny)
+
+    @property
     def reason(self) -> str | list:
         """Human-readable reason(s): a string for an unbatched fit, else nested lists."""
         codes = self.status.tolist()

@@ -156,3 +156,11 @@ def test_axial_catadioptric_cameras_with_their_axis(gen):
         assert bool(fit.ok) and line_error(fit.line, X[valid]) < 1e-6
     with pytest.raises(ValueError, match="central"):
         camera_axis(Equirectangular(width=16, height=8))
+
+
+def test_conditioning_reports_ill_posed_samples():
+    """A short, far segment is worse conditioned than a long, close one (same camera)."""
+    near = line_from_rays(noncentral_panorama_rays(horizontal_line_points(4, x0=-2, x1=2.5)))
+    far = line_from_rays(noncentral_panorama_rays(horizontal_line_points(4, y=3.0, z=9.0, x0=-0.3, x1=0.3)))
+    assert bool(near.ok) and bool(far.ok)
+    assert float(far.conditioning) < 0.1 * float(near.conditioning)
