@@ -31,7 +31,7 @@ from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import construct, register_camera
-from .solvers import newton_polish, polyder, polyval, solve_increasing
+from .solvers import newton_polish, polyval, solve_increasing
 
 KB_FILE_FIELDS = ("cx", "cy", "fx", "fy", "width", "height", "fov_deg", "k1", "k2", "k3", "k4")
 
@@ -84,7 +84,7 @@ class KannalaBrandt(Camera):
             raise ValueError(f"kannala_brandt camera: max_fov must be in (0, 2*pi) radians, got {self.max_fov}")
         # d'(theta) > 0 on [0, theta_max]: dense check (the derivative is a polynomial in theta^2)
         t = torch.linspace(0, self.theta_max, 4097, dtype=torch.float64)
-        dd = polyval(polyder(self.coeffs), t)
+        dd = self.distortion_derivative(t)
         if not bool((dd > 0).all()):
             bad = float(t[~(dd > 0)][0])
             raise ValueError(f"kannala_brandt camera: d(theta) = k0 theta + ... + k4 theta^9 with k=({self.k0}, "
@@ -103,8 +103,12 @@ class KannalaBrandt(Camera):
         return (0.0, self.k0, 0.0, self.k1, 0.0, self.k2, 0.0, self.k3, 0.0, self.k4)
 
     def distortion(self, theta: Tensor) -> Tensor:
-        """``d(theta)``."""
-        return polyval(self.coeffs, theta)
+        """``d(theta)`` (evaluated as ``theta * P(theta^2)``)."""
+        return theta * polyval((self.k0, self.k1, self.k2, self.k3, self.k4), theta * theta)
+
+    def distortion_derivative(self, theta: Tensor) -> Tensor:
+        """``d'(theta)``."""
+        return polyval((self.k0, 3 * self.k1, 5 * self.k2, 7 * self.k3, 9 * self.k4), theta * theta)
 
     def _d_over_sin(self, theta: Tensor) -> Tensor:
         """``d(theta) / sin(theta)``, smooth at 0 (``theta`` must stay below ``pi``)."""
@@ -115,12 +119,10 @@ class KannalaBrandt(Camera):
 
     def inverse_distortion(self, r: Tensor) -> Tensor:
         """``theta = d^{-1}(r)`` on ``[0, theta_max]`` (differentiable; ``r`` beyond ``d(theta_max)`` clamps)."""
-        c = self.coeffs
-        dc = polyder(c)
         lo = torch.zeros_like(r)
         hi = torch.full_like(r, self.theta_max)
-        theta = solve_increasing(lambda t: polyval(c, t), lambda t: polyval(dc, t), r, lo, hi, x0=r / self.k0)
-        return newton_polish(theta, lambda t: polyval(c, t) - r, polyval(dc, theta))
+        theta = solve_increasing(self.distortion, self.distortion_derivative, r, lo, hi, x0=r / self.k0)
+        return newton_polish(theta, lambda t: self.distortion(t) - r, self.distortion_derivative(theta))
 
     # -- interface ---------------------------------------------------------------------------
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
