@@ -70,3 +70,185 @@ def heatmaps_from_up(up: Tensor, height: int, width: int, sigma_deg: float = 3.0
     hl = torch.exp(-torch.asin(dot.abs()) ** 2 / (2 * sh * sh))
     vp = torch.exp(-torch.acos(dot) ** 2 / (2 * sv * sv)) + nadir_weight * torch.exp(-torch.acos(-dot) ** 2 / (2 * sv * sv))
     return hl.unsqueeze(1), vp.clamp(max=1.0).unsqueeze(1)
+
+
+# -- training data ----------------------------------------------------------------------------------
+def _rotate(image: Tensor, R: Tensor) -> Tensor:
+    from omnidl.postprocess.gyroscope.sampling import rotate_equirect
+    return rotate_equirect(image[None], R)[0]
+
+
+def _random_rotation(max_tilt_deg: float, gen: torch.Generator) -> Tensor:
+    from omnidl.postprocess.gyroscope.angles import random_rotations
+    return random_rotations(1, math.radians(max_tilt_deg), generator=gen)[0]
+
+
+def colour_jitter(image: Tensor, strength: float, gen: torch.Generator) -> Tensor:
+    """Random brightness, contrast and saturation factors in ``[1 - strength, 1 + strength]``; ``(3, H, W)``."""
+    if strength <= 0:
+        return image
+    f = 1 + strength * (2 * torch.rand(3, generator=gen, dtype=torch.float64) - 1)
+    img = image * float(f[0])
+    mean = img.mean()
+    img = (img - mean) * float(f[1]) + mean
+    grey = (0.299 * img[0] + 0.587 * img[1] + 0.114 * img[2]).unsqueeze(0)
+    img = (img - grey) * float(f[2]) + grey
+    return img.clamp(0, 1)
+
+
+class RotatedPanoramas(Dataset):
+    """Gravity-aligned panoramas rotated on the fly, with HoLiNet targets (thesis §6.2.1).
+
+    Args:
+        base: a dataset of *upright* equirectangular panoramas (items with an ``"image"`` ``(3, H, W)``),
+            e.g. :class:`omnidl.data.synthetic.SyntheticPanoramaDataset` or :class:`PanoramaFolder`.
+        height, width: network input size (images are resized; ``None`` keeps the base size).
+        map_height: height of the target maps (default ``height // 2``, HoLiNet's output; width 2x).
+        max_tilt_deg: up vectors uniform in a cap of this angle (180 = any orientation); yaw uniform.
+        sigma_deg, vp_sigma_deg, nadir_weight: target widths and nadir peak (:func:`horizon_heatmaps`).
+        augment: apply flip / colour permutation / colour jitter / crop (training).
+        flip_p, permute_p, jitter, crop_p, crop_min_scale: augmentation settings. Flip and colour changes
+            act on the upright image (they keep it upright); a crop keeps a random window of at least
+            ``crop_min_scale`` of each side of the *rotated* image and maps, resized back, so it breaks the
+            panorama geometry: ``geometry_valid`` is then False and rotation metrics skip the sample.
+        deterministic: the same rotation/augmentation for the same index (validation); otherwise fresh
+            random draws every time (training; seeded by the engine's worker seeds).
+        seed: base seed of the deterministic draws.
+        length: number of samples (default ``len(base)``; indices wrap around the base).
+
+    Items: ``{"image": (3, H, W), "horizon_map": (1, h, w), "vp_map": (1, h, w), "rotation": (3, 3)``
+    ``R_up_cam``, ``"up": (3,)`` horizon normal in the camera frame, ``"geometry_valid": bool tensor,
+    "meta": {...}}``.
+    """
+
+    def __init__(self, base: Dataset, height: int | None = 128, width: int | None = 256, map_height: int | None = None,
+                 max_tilt_deg: float = 180.0, sigma_deg: float = 3.0, vp_sigma_deg: float | None = None,
+                 nadir_weight: float = 0.5, augment: bool = True, flip_p: float = 0.5, permute_p: float = 0.5,
+                 jitter: float = 0.2, crop_p: float = 0.0, crop_min_scale: float = 0.8, deterministic: bool = False,
+                 seed: int = 0, length: int | None = None) -> None:
+        if len(base) == 0:
+            raise ValueError("RotatedPanoramas: the base dataset is empty")
+        if not 0 <= max_tilt_deg <= 180:
+            raise ValueError(f"RotatedPanoramas: max_tilt_deg must be in [0, 180], got {max_tilt_deg}")
+        if (height is None) != (width is None) or (width is not None and width != 2 * height):
+            raise ValueError(f"RotatedPanoramas: give height and width of a full panorama (width = 2 height), got "
+                             f"{height} x {width}")
+        if not 0 < crop_min_scale <= 1:
+            raise ValueError(f"RotatedPanoramas: crop_min_scale must be in (0, 1], got {crop_min_scale}")
+        self.base = base
+        self.height, self.width = height, width
+        self.map_height = map_height
+        self.max_tilt_deg = float(max_tilt_deg)
+        self.sigma_deg, self.vp_sigma_deg, self.nadir_weight = float(sigma_deg), vp_sigma_deg, float(nadir_weight)
+        self.augment = bool(augment)
+        self.flip_p, self.permute_p, self.jitter = float(flip_p), float(permute_p), float(jitter)
+        self.crop_p, self.crop_min_scale = float(crop_p), float(crop_min_scale)
+        self.deterministic = bool(deterministic)
+        self.seed = int(seed)
+        self.length = len(base) if length is None else int(length)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def _generator(self, index: int) -> torch.Generator:
+        if self.deterministic:
+            return torch.Generator().manual_seed(self.seed * 1_000_003 + index)
+        return torch.Generator().manual_seed(int(torch.randint(0, 2 ** 62, (1,))))
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        if not 0 <= index < self.length:
+            raise IndexError(f"index {index} out of range for a dataset of length {self.length}")
+        item = self.base[index % len(self.base)]
+        if not isinstance(item, dict) or "image" not in item:
+            raise KeyError(f"RotatedPanoramas: base item {index} has no 'image' (got "
+                           f"{sorted(item) if isinstance(item, dict) else type(item).__name__})")
+        img = torch.as_tensor(item["image"]).float()
+        if img.ndim != 3 or img.shape[0] != 3 or img.shape[2] != 2 * img.shape[1]:
+            raise ValueError(f"RotatedPanoramas: base item {index}: expected an equirectangular RGB image (3, H, 2H), "
+                             f"got {tuple(img.shape)}")
+        if self.height is not None and tuple(img.shape[-2:]) != (self.height, self.width):
+            img = F.interpolate(img[None], size=(self.height, self.width), mode="bilinear", align_corners=False,
+                                antialias=True)[0]
+        gen = self._generator(index)
+        meta: dict[str, Any] = {"index": int(index), "flip": False, "permutation": [0, 1, 2], "crop": None}
+        if self.augment:
+            if float(torch.rand(1, generator=gen)) < self.flip_p:
+                img = img.flip(-1)  # mirror of an upright panorama is upright
+                meta["flip"] = True
+            if float(torch.rand(1, generator=gen)) < self.permute_p:
+                perm = torch.randperm(3, generator=gen)
+                img = img[perm]
+                meta["permutation"] = perm.tolist()
+            img = colour_jitter(img, self.jitter, gen)
+        R = _random_rotation(self.max_tilt_deg, gen)
+        img = _rotate(img, R.to(img.dtype)).clamp(0, 1)
+        H, W = img.shape[-2:]
+        mh = self.map_height or max(1, H // 2)
+        hl, vp = horizon_heatmaps(R[None].float(), mh, 2 * mh, self.sigma_deg, self.vp_sigma_deg, self.nadir_weight)
+        hl, vp = hl[0], vp[0]
+        geometry_valid = True
+        if self.augment and self.crop_p > 0 and float(torch.rand(1, generator=gen)) < self.crop_p:
+            s = self.crop_min_scale + (1 - self.crop_min_scale) * float(torch.rand(1, generator=gen))
+            fy, fx = float(torch.rand(1, generator=gen)), float(torch.rand(1, generator=gen))
+            img = _crop_resize(img, s, fy, fx)
+            hl, vp = _crop_resize(hl, s, fy, fx), _crop_resize(vp, s, fy, fx)
+            geometry_valid = False
+            meta["crop"] = [s, fy, fx]
+        base_meta = item.get("meta", {})
+        if isinstance(base_meta, dict):
+            meta["base"] = {k: v for k, v in base_meta.items() if isinstance(v, (str, int, float, bool))}
+        return {"image": img, "horizon_map": hl, "vp_map": vp, "rotation": R.float(), "up": (-R[1, :]).float(),
+                "geometry_valid": torch.tensor(geometry_valid), "meta": meta}
+
+
+def _crop_resize(x: Tensor, scale: float, fy: float, fx: float) -> Tensor:
+    """Crop a window of ``scale`` of each side at relative offset ``(fy, fx)`` and resize it back."""
+    H, W = x.shape[-2:]
+    h, w = max(1, round(H * scale)), max(1, round(W * scale))
+    y0, x0 = int(round(fy * (H - h))), int(round(fx * (W - w)))
+    win = x[..., y0:y0 + h, x0:x0 + w]
+    return F.interpolate(win[None], size=(H, W), mode="bilinear", align_corners=False)[0]
+
+
+class PanoramaFolder(Dataset):
+    """Upright panoramas from a folder (any sorted image files), as ``{"image": (3, H, W), "meta"}``.
+
+    Args:
+        root: folder of equirectangular images (png/jpg/...).
+        height, width: resize to this size (``None`` keeps each file's size).
+    """
+
+    EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+    def __init__(self, root: str, height: int | None = 256, width: int | None = 512) -> None:
+        self.root = Path(root).expanduser()
+        if not self.root.is_dir():
+            raise FileNotFoundError(f"panorama folder {self.root} does not exist")
+        self.files = sorted(p for p in self.root.iterdir() if p.suffix.lower() in self.EXTENSIONS)
+        if not self.files:
+            raise FileNotFoundError(f"panorama folder {self.root} holds no images ({', '.join(self.EXTENSIONS)})")
+        self.height, self.width = height, width
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        img = read_rgb(self.files[index])
+        if self.height is not None:
+            img = F.interpolate(img[None], size=(self.height, self.width), mode="bilinear", align_corners=False,
+                                antialias=True)[0]
+        return {"image": img, "meta": {"name": self.files[index].name}}
+
+
+def read_rgb(path: str | Path) -> Tensor:
+    """``(3, H, W)`` float32 RGB in ``[0, 1]`` of an image file (8 or 16 bit); clear error if unreadable."""
+    import cv2
+    import numpy as np
+    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise IOError(f"could not read image {path}")
+    if arr.ndim == 2:
+        arr = np.repeat(arr[..., None], 3, axis=2)
+    arr = arr[..., :3][..., ::-1]
+    scale = 65535.0 if arr.dtype == np.uint16 else 255.0
+    return torch.from_numpy(np.ascontiguousarray(arr).astype(np.float32) / scale).permute(2, 0, 1)

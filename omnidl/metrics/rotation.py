@@ -65,7 +65,8 @@ class HorizonMetrics:
         logits: the model outputs logits (sigmoid applied here).
         fit: :class:`~omnidl.postprocess.gyroscope.HorizonFitOptions` overrides.
     Reads ``outputs["horizon"], outputs["vp"]`` ``(B, 1, h, w)`` and ``batch["up"]`` ``(B, 3)``; samples
-    with ``batch["geometry_valid"] == False`` (cropped) are skipped.
+    with ``batch["geometry_valid"] == False`` (cropped) are skipped. Maps without a usable line count with
+    the fit's fallback direction (``horizon_no_line`` gives their fraction).
     """
 
     def __init__(self, thresholds: Sequence[float] = (5.0, 10.0), logits: bool = True, fit: dict | None = None) -> None:
@@ -77,6 +78,7 @@ class HorizonMetrics:
     def reset(self) -> None:
         self.errors: list[Tensor] = []
         self.baseline: list[Tensor] = []
+        self.invalid: list[Tensor] = []
 
     def update(self, outputs: dict, batch: dict) -> None:
         from omnidl.postprocess.gyroscope.horizon import fit_horizon
@@ -91,9 +93,9 @@ class HorizonMetrics:
         if not bool(keep.any()):
             return
         res = fit_horizon(hl[keep.to(hl.device)].cpu(), vp[keep.to(vp.device)].cpu(), **self.fit)
-        err = horizon_normal_error(res["up"].float(), gt[keep])
-        err = torch.where(res["valid"], err, torch.full_like(err, math.nan))
-        self.errors.append(err)
+        # frames without a line keep the fit's fallback (VP direction, else upright) in the error statistics
+        self.errors.append(horizon_normal_error(res["up"].float(), gt[keep]))
+        self.invalid.append(~res["valid"].cpu())
         up = torch.tensor([0.0, -1.0, 0.0]).expand_as(gt[keep])
         self.baseline.append(horizon_normal_error(up, gt[keep]))
 
@@ -103,7 +105,7 @@ class HorizonMetrics:
         err, base = torch.cat(self.errors), torch.cat(self.baseline)
         out = _summary("horizon", err, self.thresholds)
         out.update(_summary("upright_baseline", base, self.thresholds))
-        out["horizon_no_estimate"] = float((~torch.isfinite(err)).double().mean())
+        out["horizon_no_line"] = float(torch.cat(self.invalid).double().mean())
         return out
 
 
