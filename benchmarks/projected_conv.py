@@ -7,8 +7,9 @@ For each batch size, the three variants run interleaved (one repetition of each 
 round) after a warm-up; the table shows median times in milliseconds of forward and
 forward+backward (input and weight require grad; offsets fixed) and the ratios
 fast / conv2d and deform_conv2d / fast. The camera is an equirectangular panorama of the
-input size, 3x3 kernel, stride 1, padding 1, float32. Also printed: the cache memory of
-one layer (sampling plan, offsets) and the memory of the saved columns.
+input size, 3x3 kernel, stride 1, padding 1, float32. NCHW and channels-last inputs are
+timed separately (each against nn.Conv2d in the same layout). Also printed: the cache
+memory of one layer (sampling plan, offsets).
 """
 from __future__ import annotations
 
@@ -51,55 +52,64 @@ def run(channels: int = 64, height: int = 128, width: int = 256, batches=(1, 4),
     build_ms = (time.perf_counter() - t0) * 1e3
     info = plan_cache_info()
     rows = []
-    variants = {"conv2d": conv, "fast": fast} if skip_deform else {"conv2d": conv, "fast": fast, "deform_conv2d": tv}
+    variants = {"conv2d": (conv, False), "fast": (fast, False), "conv2d_cl": (conv, True), "fast_cl": (fast, True)}
+    if not skip_deform:
+        variants["deform_conv2d"] = (tv, False)
     for B in batches:
-        x = torch.randn(B, channels, height, width)
-        xg = x.clone().requires_grad_(True)
+        inputs = {}
+        for cl in (False, True):
+            x = torch.randn(B, channels, height, width)
+            if cl:
+                x = x.to(memory_format=torch.channels_last)
+            inputs[cl] = (x, x.clone().requires_grad_(True))
 
-        def fwd(m):
+        def fwd(m, cl):
             with torch.no_grad():
-                m(x)
+                m(inputs[cl][0])
 
-        def fwdbwd(m):
+        def fwdbwd(m, cl):
+            xg = inputs[cl][1]
             xg.grad = None
             m.zero_grad(set_to_none=True)
             y = m(xg)
             y.backward(torch.ones_like(y))
 
         times = {name: {"fwd": [], "fwdbwd": []} for name in variants}
-        for name, m in variants.items():  # warm-up
-            fwd(m)
-            fwdbwd(m)
+        for name, (m, cl) in variants.items():  # warm-up
+            fwd(m, cl)
+            fwdbwd(m, cl)
         n_deform = max(2, reps // 3) if B > 1 else reps
         for r in range(reps):
-            for name, m in variants.items():
+            for name, (m, cl) in variants.items():
                 if name == "deform_conv2d" and r >= n_deform:
                     continue
-                times[name]["fwd"].append(_timed(lambda: fwd(m)))
-                times[name]["fwdbwd"].append(_timed(lambda: fwdbwd(m)))
+                times[name]["fwd"].append(_timed(lambda: fwd(m, cl)))
+                times[name]["fwdbwd"].append(_timed(lambda: fwdbwd(m, cl)))
         med = {n: {k: statistics.median(v) for k, v in t.items()} for n, t in times.items()}
         row = {"batch": B, **{f"{n}_{k}_ms": v for n, t in med.items() for k, v in t.items()}}
         for k in ("fwd", "fwdbwd"):
             row[f"fast_vs_conv2d_{k}"] = med["fast"][k] / med["conv2d"][k]
+            row[f"fast_cl_vs_conv2d_cl_{k}"] = med["fast_cl"][k] / med["conv2d_cl"][k]
             if "deform_conv2d" in med:
                 row[f"deform_vs_fast_{k}"] = med["deform_conv2d"][k] / med["fast"][k]
         rows.append(row)
-    cols_mb = height * width * 9 * channels * 4 / 2 ** 20
     print(f"# ProjectedConv2d benchmark: C={channels}, {height}x{width}, 3x3, float32, CPU, "
-          f"{torch.get_num_threads()} threads, median of {reps} interleaved repetitions")
-    print(f"# plan cache per layer: {info['plan_bytes'] / 2 ** 20:.1f} MiB (sampling plan), "
-          f"{info['offset_bytes'] / 2 ** 20:.1f} MiB (offsets+mask, float64 master + float32 copy); "
-          f"first-call build {build_ms:.0f} ms; saved columns {cols_mb:.1f} MiB per image in the batch")
-    hdr = "| batch | variant | fwd ms | fwd+bwd ms | fwd / conv2d | fwd+bwd / conv2d |"
-    print(hdr)
+          f"{torch.get_num_threads()} threads, median of {reps} interleaved repetitions "
+          f"(deform_conv2d: {reps} at batch 1, fewer above); *_cl = channels-last tensors")
+    print(f"# cache per layer: {info['plan_bytes'] / 2 ** 20:.1f} MiB sampling plan (taps + chunked CSR "
+          f"transposes), {info['offset_bytes'] / 2 ** 20:.1f} MiB offsets+mask (float64 master + float32 copy, "
+          f"the latter only for the torchvision backend); first call (offsets + plan) {build_ms:.0f} ms")
+    print("| batch | variant | fwd ms | fwd+bwd ms | fwd / conv2d | fwd+bwd / conv2d |")
     print("|---|---|---|---|---|---|")
     for row in rows:
         for n in variants:
+            base = "conv2d_cl" if n.endswith("_cl") else "conv2d"
             f, fb = row[f"{n}_fwd_ms"], row[f"{n}_fwdbwd_ms"]
-            print(f"| {row['batch']} | {n} | {f:.1f} | {fb:.1f} | {f / row['conv2d_fwd_ms']:.2f}x "
-                  f"| {fb / row['conv2d_fwdbwd_ms']:.2f}x |")
+            print(f"| {row['batch']} | {n} | {f:.1f} | {fb:.1f} | {f / row[base + '_fwd_ms']:.2f}x "
+                  f"| {fb / row[base + '_fwdbwd_ms']:.2f}x |")
     for row in rows:
-        line = (f"batch {row['batch']}: fast fwd+bwd = {row['fast_vs_conv2d_fwdbwd']:.2f}x conv2d (target <= 3x)")
+        line = (f"batch {row['batch']}: fast fwd+bwd = {row['fast_vs_conv2d_fwdbwd']:.2f}x conv2d (NCHW), "
+                f"{row['fast_cl_vs_conv2d_cl_fwdbwd']:.2f}x conv2d (channels-last) (target <= 3x)")
         if "deform_vs_fast_fwdbwd" in row:
             line += (f"; deform_conv2d / fast = {row['deform_vs_fast_fwd']:.1f}x fwd, "
                      f"{row['deform_vs_fast_fwdbwd']:.1f}x fwd+bwd (target >= 20x at batch 1)")

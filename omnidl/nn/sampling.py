@@ -16,8 +16,9 @@ chunk of output positions (so that each chunk's columns stay in cache)::
     grad_X[band] += S_c^T @ (grad_out_c @ Wm^T)   # GEMM + precomputed CSR transpose of the chunk
     grad_W += cols^T @ grad_out_c       # columns recomputed in backward (nothing big is saved)
 
-No offsets are expanded over the batch: the plan is shared by every image. Outputs
-and input gradients come back as NCHW tensors with channels-last strides.
+No offsets are expanded over the batch: the plan is shared by every image. Outputs and
+input gradients keep the memory format of the input (channels-last is copy-free; NCHW costs
+one layout copy of the input, one per output chunk and one of the input gradient).
 
 :func:`deform_conv2d_reference` runs ``torchvision.ops.deform_conv2d`` with the same
 offsets and mask (circular padding of the input for ``wrap``): the test reference.
@@ -70,20 +71,21 @@ class SamplingPlan:
         out = []
         for s in range(0, P, positions):
             e = min(P, s + positions)
-            idx = self.idx[s * K:e * K]
-            w = self.weight[s * K:e * K]
+            w = self.weight[s * K:e * K].reshape(-1)
             nz = w != 0
-            inp = idx[nz]
-            col = torch.arange(idx.shape[0], device=idx.device).unsqueeze(1).expand_as(idx)[nz]
-            if inp.numel():
-                lo, hi = int(inp.min()), int(inp.max()) + 1
-            else:
-                lo, hi = 0, 1
-            coo = torch.sparse_coo_tensor(torch.stack([inp - lo, col]), w[nz], (hi - lo, (e - s) * K),
-                                          check_invariants=False).coalesce()
+            inp = self.idx[s * K:e * K].reshape(-1)[nz]
+            col = torch.arange((e - s) * K, device=inp.device).repeat_interleave(4)[nz]
+            w = w[nz]
+            lo, hi = (int(inp.min()), int(inp.max()) + 1) if inp.numel() else (0, 1)
+            inp = inp - lo
+            order = torch.argsort(inp * ((e - s) * K) + col)
+            crow = torch.zeros(hi - lo + 1, dtype=torch.int64, device=inp.device)
+            crow[1:] = torch.cumsum(torch.bincount(inp, minlength=hi - lo), 0)
             with warnings.catch_warnings():
                 warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
-                out.append((s, e, lo, hi, coo.to_sparse_csr()))
+                st = torch.sparse_csr_tensor(crow, col[order], w[order], (hi - lo, (e - s) * K),
+                                             check_invariants=False)
+            out.append((s, e, lo, hi, st))
         self.chunk_cache[positions] = out
         return out
 
@@ -169,6 +171,11 @@ def chunk_positions(plan: SamplingPlan, channels: int, element_size: int) -> int
     return max(16, CHUNK_BYTES // (plan.taps * channels * element_size))
 
 
+def _is_channels_last(t: Tensor) -> bool:
+    """True when ``t (B, C, H, W)`` is stored channels-last (and not also plain contiguous)."""
+    return t.is_contiguous(memory_format=torch.channels_last) and not t.is_contiguous()
+
+
 class _FixedOffsetConv(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,  # type: ignore[override]
@@ -177,23 +184,38 @@ class _FixedOffsetConv(torch.autograd.Function):
         Cout = weight.shape[0]
         K = plan.taps
         Ho, Wo = plan.out_hw
+        P = Ho * Wo
+        channels_last = _is_channels_last(x)
         xr = _rows(x)
         wm = weight.permute(2, 3, 1, 0).reshape(K * C, Cout)
-        out = torch.empty(B, Ho * Wo, Cout, dtype=x.dtype, device=x.device)
+        wmt = wm.t()
         chunks = plan.chunks(positions)
-        for b in range(B):
-            for s, e, *_ in chunks:
-                cols = _gather(plan, xr[b], s, e)
-                if bias is not None:
-                    torch.addmm(bias, cols, wm, out=out[b, s:e])
-                else:
-                    torch.mm(cols, wm, out=out[b, s:e])
+        if channels_last:  # output rows (B, P, Cout), written in place chunk by chunk
+            out = torch.empty(B, P, Cout, dtype=x.dtype, device=x.device)
+            for b in range(B):
+                for s, e, *_ in chunks:
+                    cols = _gather(plan, xr[b], s, e)
+                    if bias is not None:
+                        torch.addmm(bias, cols, wm, out=out[b, s:e])
+                    else:
+                        torch.mm(cols, wm, out=out[b, s:e])
+            result = out.view(B, Ho, Wo, Cout).permute(0, 3, 1, 2)
+        else:  # NCHW output (B, Cout, P): each chunk computed transposed, then copied while in cache
+            out = torch.empty(B, Cout, P, dtype=x.dtype, device=x.device)
+            bcol = None if bias is None else bias.unsqueeze(1)
+            for b in range(B):
+                for s, e, *_ in chunks:
+                    cols = _gather(plan, xr[b], s, e)
+                    y = torch.mm(wmt, cols.t()) if bcol is None else torch.addmm(bcol, wmt, cols.t())
+                    out[b, :, s:e] = y
+            result = out.view(B, Cout, Ho, Wo)
         ctx.plan = plan
         ctx.positions = positions
         ctx.has_bias = bias is not None
+        ctx.channels_last = channels_last
         ctx.save_for_backward(xr if weight.requires_grad else None, wm)
         ctx.in_shape = (B, C, H, W)
-        return out.view(B, Ho, Wo, Cout).permute(0, 3, 1, 2)
+        return result
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -203,7 +225,17 @@ class _FixedOffsetConv(torch.autograd.Function):
         B, C, H, W = ctx.in_shape
         kh, kw = plan.kernel_size
         Cout = wm.shape[1]
-        g = _rows(grad_out)  # (B, Ho*Wo, Cout)
+        P = plan.out_hw[0] * plan.out_hw[1]
+        if _is_channels_last(grad_out):
+            g = _rows(grad_out)  # (B, P, Cout)
+
+            def gchunk(b: int, s: int, e: int) -> Tensor:
+                return g[b, s:e]
+        else:
+            g = grad_out.contiguous().view(B, Cout, P)
+
+            def gchunk(b: int, s: int, e: int) -> Tensor:
+                return g[b, :, s:e].t()  # strided (P_c, Cout) view, BLAS-compatible
         need_x, need_w, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
         gx = gw = gb = None
         if need_x:
@@ -214,17 +246,19 @@ class _FixedOffsetConv(torch.autograd.Function):
         chunks = plan.chunks(ctx.positions)
         for b in range(B):
             for s, e, lo, hi, st in chunks:
-                gc = g[b, s:e]
+                gc = gchunk(b, s, e)
                 if need_w:  # recompute the chunk's columns (cheap gather, stays in cache)
                     gwm.addmm_(_gather(plan, xr[b], s, e).t(), gc)
                 if need_x:
                     gx[b, lo:hi].addmm_(st, torch.mm(gc, wmt).view(-1, C))
         if need_x:
             gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
+            if not ctx.channels_last:
+                gx = gx.contiguous()
         if need_w:
             gw = gwm.view(kh, kw, C, Cout).permute(3, 2, 0, 1)
         if need_b and ctx.has_bias:
-            gb = g.sum((0, 1))
+            gb = grad_out.sum((0, 2, 3))
         return gx, gw, gb, None, None
 
 
@@ -236,7 +270,8 @@ def fixed_offset_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: Sa
     :data:`CHUNK_BYTES` of columns per chunk): gather, GEMM and scatter of a chunk stay in
     cache, and the columns are recomputed in backward instead of being stored (no
     ``Ho*Wo*K*C`` buffer is kept between forward and backward).
-    Returns ``(B, Cout, Ho, Wo)`` with channels-last strides.
+    Returns ``(B, Cout, Ho, Wo)`` in the memory format of ``x`` (channels-last input ->
+    channels-last output without any copy; that is the fastest layout on CPU).
     """
     if x.dim() != 4:
         raise ValueError(f"expected a (B, C, H, W) input, got shape {tuple(x.shape)}")

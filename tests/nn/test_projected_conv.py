@@ -1,0 +1,133 @@
+"""ProjectedConv2d as a layer: drop-in for nn.Conv2d, cache sharing, backends, errors."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from omnidl.cameras import Equirectangular, Pinhole, get_camera_class
+from omnidl.nn import ProjectedConv2d, clear_plan_cache, plan_cache_info
+from omnidl.nn.projected_conv import get_plan
+
+
+@pytest.mark.parametrize("kwargs", [dict(kernel_size=3, padding=1), dict(kernel_size=5, stride=2, padding=2),
+                                    dict(kernel_size=3, padding="same", dilation=2), dict(kernel_size=1),
+                                    dict(kernel_size=3, padding=1, groups=2)])
+def test_without_camera_is_nn_conv2d(kwargs):
+    torch.manual_seed(0)
+    ref = nn.Conv2d(4, 6, **kwargs)
+    conv = ProjectedConv2d(4, 6, **kwargs)
+    conv.load_state_dict(ref.state_dict())  # same keys and shapes
+    assert list(conv.state_dict()) == list(ref.state_dict())
+    x = torch.randn(2, 4, 9, 13)
+    assert torch.equal(conv(x), ref(x))
+
+
+def test_state_dict_loads_from_conv2d_with_camera():
+    ref = nn.Conv2d(3, 5, 3, padding=1)
+    conv = ProjectedConv2d(3, 5, 3, padding=1, camera=Equirectangular(width=32, height=16))
+    conv.load_state_dict(ref.state_dict())
+    assert torch.equal(conv.weight, ref.weight) and torch.equal(conv.bias, ref.bias)
+    assert isinstance(conv, nn.Conv2d)
+
+
+def test_camera_config_mapping_and_repr():
+    conv = ProjectedConv2d(3, 5, 3, padding=1, camera={"type": "equirect", "width": 32, "height": 16})
+    assert isinstance(conv.camera, Equirectangular)
+    assert "Equirectangular(32x16)" in repr(conv)
+
+
+def test_far_pinhole_is_close_to_conv2d():
+    """A pinhole with a tiny field of view barely distorts the kernel: output ~ nn.Conv2d."""
+    torch.manual_seed(0)
+    cam = Pinhole(width=24, height=16, fx=2000.0, fy=2000.0, cx=12.0, cy=8.0)
+    ref = nn.Conv2d(3, 4, 3, padding=1).double()
+    conv = ProjectedConv2d(3, 4, 3, padding=1, camera=cam).double()
+    conv.load_state_dict(ref.state_dict())
+    x = torch.randn(1, 3, 16, 24, dtype=torch.float64)
+    assert (conv(x) - ref(x)).abs().max() < 1e-3
+
+
+def test_cache_is_shared_by_key():
+    clear_plan_cache()
+    cam = Equirectangular(width=32, height=16)
+    a = ProjectedConv2d(3, 4, 3, padding=1, camera=cam)
+    b = ProjectedConv2d(5, 2, 3, padding=1, camera=Equirectangular(width=32, height=16))  # equal camera
+    x3, x5 = torch.randn(1, 3, 8, 16), torch.randn(2, 5, 8, 16)
+    a(x3)
+    b(x5)
+    info = plan_cache_info()
+    assert info["plans"] == 1 and info["geometries"] == 1
+    key = a.geometry_key((8, 16))
+    assert key == b.geometry_key((8, 16))
+    assert get_plan(key, x3.device, torch.float32) is get_plan(key, x3.device, torch.float32)
+    a(torch.randn(1, 3, 16, 32))  # a new input size: a new plan
+    ProjectedConv2d(3, 4, 3, stride=2, padding=1, camera=cam)(x3)  # a new stride: a new plan
+    a.double()(x3.double())  # another dtype: same geometry, new plan
+    info = plan_cache_info()
+    assert info["geometries"] == 3 and info["plans"] == 4
+    assert info["plan_bytes"] > 0
+
+
+def test_backends_agree_and_output_size():
+    torch.manual_seed(1)
+    cam = get_camera_class("kannala_brandt").example()
+    fast = ProjectedConv2d(3, 4, 3, stride=2, padding=1, camera=cam, backend="fast").double()
+    tv = ProjectedConv2d(3, 4, 3, stride=2, padding=1, camera=cam, backend="torchvision").double()
+    tv.load_state_dict(fast.state_dict())
+    x = torch.randn(2, 3, 15, 17, dtype=torch.float64)
+    y = fast(x)
+    assert y.shape == nn.Conv2d(3, 4, 3, stride=2, padding=1)(x.float()).shape
+    assert (y - tv(x)).abs().max() < 1e-10
+
+
+def test_grouped_conv_uses_torchvision_in_auto():
+    torch.manual_seed(2)
+    cam = Equirectangular(width=32, height=16)
+    conv = ProjectedConv2d(4, 6, 3, padding=1, groups=2, camera=cam).double()
+    assert conv.resolved_backend() == "torchvision"
+    x = torch.randn(1, 4, 8, 16, dtype=torch.float64)
+    # each group equals its own ungrouped projected conv
+    y = conv(x)
+    for gi in range(2):
+        part = ProjectedConv2d(2, 3, 3, padding=1, camera=cam, backend="fast").double()
+        part.weight.data.copy_(conv.weight[3 * gi:3 * gi + 3])
+        part.bias.data.copy_(conv.bias[3 * gi:3 * gi + 3])
+        assert (part(x[:, 2 * gi:2 * gi + 2]) - y[:, 3 * gi:3 * gi + 3]).abs().max() < 1e-10
+    with pytest.raises(NotImplementedError, match="groups=1"):
+        ProjectedConv2d(4, 6, 3, groups=2, camera=cam, backend="fast")
+
+
+def test_invalid_samples_read_zero():
+    KB = get_camera_class("kannala_brandt")
+    cam = KB(width=32, height=32, fx=8.0, fy=8.0, cx=16.0, cy=16.0, max_fov=math.radians(150))
+    conv = ProjectedConv2d(1, 1, 3, padding=1, camera=cam, bias=False)
+    nn.init.constant_(conv.weight, 1.0)
+    y = conv(torch.ones(1, 1, 32, 32))
+    assert y[0, 0, 0, 0] == 0  # the corner sees nothing
+    assert abs(float(y[0, 0, 16, 16]) - 9) < 1e-4  # the centre sees 9 valid samples of 1
+
+
+def test_batch_equals_per_image_and_channels_last_input():
+    torch.manual_seed(3)
+    conv = ProjectedConv2d(3, 4, 3, padding=1, camera=Equirectangular(width=32, height=16)).double()
+    x = torch.randn(3, 3, 8, 16, dtype=torch.float64)
+    y = conv(x)
+    assert torch.allclose(y[1:2], conv(x[1:2]), atol=1e-12)
+    assert torch.allclose(conv(x.to(memory_format=torch.channels_last)), y, atol=1e-12)
+
+
+def test_configuration_errors():
+    cam = Equirectangular(width=32, height=16)
+    with pytest.raises(ValueError, match="padding_mode"):
+        ProjectedConv2d(3, 4, 3, padding=1, padding_mode="reflect", camera=cam)
+    with pytest.raises(ValueError, match="backend"):
+        ProjectedConv2d(3, 4, 3, camera=cam, backend="cuda")
+    with pytest.raises(ValueError, match="wrap=True"):
+        ProjectedConv2d(3, 4, 3, camera=Pinhole.example(), wrap=True)
+    with pytest.raises(TypeError, match="camera"):
+        ProjectedConv2d(3, 4, 3, camera="equirect")
+    with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
+        ProjectedConv2d(3, 4, 3, camera=cam)(torch.randn(1, 2, 8, 8))
