@@ -195,3 +195,16 @@ def test_render_every_camera_from_panorama(pano, name, cam):
     assert (out[0, 0][~valid[0, 0]] == 0).all()
     mad = (out[0, 0].double() - true)[v].abs().mean()
     assert mad < 1.2, (name, float(mad))
+
+
+def test_module_wrapper_and_dtypes(pano):
+    from omnidl.geometry import Reprojector
+    cam = Pinhole.from_fov(12, 10, math.radians(60))
+    R = euler_to_matrix(*deg(0, 10, 30))
+    m = Reprojector(PANO, cam)
+    out32, _ = m(pano.float(), R.float())
+    out64, _ = reproject(pano, PANO, cam, R)
+    assert out32.dtype == torch.float32 and out64.dtype == torch.float64
+    assert (out32.double() - out64).abs().max() < 1e-3
+    with pytest.raises(ValueError, match="mode"):
+        Reprojector(PANO, cam, mode="area")
