@@ -181,7 +181,7 @@ class Scaramuzza(Camera):
 
     def unproject(self, uv: Tensor) -> Rays:
         xs, ys = self.pixel_to_sensor(uv)
-        rho = torch.hypot(xs, ys)
+        rho = safe_norm(torch.stack([xs, ys], -1))
         ok = (rho <= self.rho_limit) & in_image(uv, self.width, self.height)
         xs = torch.where(ok, xs, torch.zeros_like(xs))
         ys = torch.where(ok, ys, torch.zeros_like(ys))

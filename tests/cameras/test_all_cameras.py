@@ -83,3 +83,20 @@ def test_config_roundtrip(name):
     from omnidl.cameras import build
     cam = _cam(name)
     assert build(cam.to_config()) == cam
+
+
+@pytest.mark.parametrize("name", sorted(EXAMPLES))
+def test_special_points_have_finite_gradients(name):
+    """The optical axis, the principal point, the origin, points behind and pixels outside: finite values/grads."""
+    cam = _cam(name)
+    pts = torch.tensor([[0, 0, 2.0], [0, 0, -2.0], [0, 0, 0.0], [1e-3, -2, -50], [0, 2.0, 0], [3, 0, 0.0]],
+                       dtype=torch.float64, requires_grad=True)
+    uv, _ = cam.project(pts)
+    (g,) = torch.autograd.grad(uv.sum(), pts)
+    centre = [getattr(cam, "cx", cam.width / 2), getattr(cam, "cy", cam.height / 2)]
+    pix = torch.tensor([centre, [-5.0, -5.0], [cam.width / 2, cam.height / 2]], dtype=torch.float64,
+                       requires_grad=True)
+    rays = cam.unproject(pix)
+    (g2,) = torch.autograd.grad(rays.direction.sum() + rays.origin.sum(), pix)
+    for t in (uv, g, rays.direction, rays.origin, g2):
+        assert torch.isfinite(t).all()
