@@ -117,6 +117,35 @@ def run(channels: int = 64, height: int = 128, width: int = 256, batches=(1, 4),
     return rows
 
 
+def resnet50_check(height: int = 128, width: int = 256, threads: int = 2) -> None:
+    """Acceptance check: ``convert_conv2d(resnet50(), equirect)`` runs forward/backward on ``height x width``."""
+    import torchvision
+
+    from omnidl.nn import convert_conv2d
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    x = torch.randn(1, 3, height, width)
+    plain = torchvision.models.resnet50()
+    net = convert_conv2d(torchvision.models.resnet50(), Equirectangular(width=width, height=height))
+    net.load_state_dict(plain.state_dict())
+    n = sum(isinstance(m, ProjectedConv2d) for m in net.modules())
+    t0 = time.perf_counter()
+    net(x).sum().backward()  # first call builds the sampling plans
+    first = (time.perf_counter() - t0) * 1e3
+    times: dict[str, list[float]] = {"resnet50": [], "resnet50+ProjectedConv2d": []}
+    for _ in range(3):
+        for name, m in (("resnet50", plain), ("resnet50+ProjectedConv2d", net)):
+            m.zero_grad(set_to_none=True)
+            times[name].append(_timed(lambda: m(x).sum().backward()))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    print(f"# convert_conv2d(resnet50, equirect {width}x{height}): {n} convolutions converted; "
+          f"first forward+backward (with plan building) {first:.0f} ms")
+    print(f"resnet50 fwd+bwd, batch 1, {height}x{width}: plain {med['resnet50']:.0f} ms, converted "
+          f"{med['resnet50+ProjectedConv2d']:.0f} ms ({med['resnet50+ProjectedConv2d'] / med['resnet50']:.2f}x); "
+          f"plan cache {plan_cache_info()['plan_bytes'] / 2 ** 20:.0f} MiB")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--channels", type=int, default=64)
@@ -126,8 +155,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--skip-deform", action="store_true", help="leave out deform_conv2d (slow)")
+    ap.add_argument("--skip-resnet50", action="store_true", help="leave out the converted resnet50 check")
     a = ap.parse_args(argv)
     run(a.channels, a.height, a.width, tuple(a.batch), a.reps, a.threads, a.skip_deform)
+    if not a.skip_resnet50:
+        resnet50_check(a.height, a.width, a.threads)
 
 
 if __name__ == "__main__":
