@@ -11,7 +11,8 @@ so every ray meets the vertical axis (``y``) and the circle. Rays are Plücker l
 ``(d, m = o x d)`` (Eq. 2.16 in omnidl's frame). Forward projection of a point ``X`` is closed
 form: ``lon = atan2(x, z)`` and, with the horizontal distance ``rho = |(x, z)|``,
 ``lat = atan2(-y, rho - rc)`` (Eq. 2.14). Points with ``rho <= rc`` (inside the circle, not seen
-by any outward ray) are invalid.
+by any outward ray) are invalid. ``rc = 0`` is allowed (all rays through the origin: the
+``equirect`` geometry, still flagged non-central so sweeps over ``rc`` need no special case).
 """
 from __future__ import annotations
 
@@ -39,9 +40,8 @@ class NonCentralPanorama(Camera):
     lat_max: float = math.pi / 2
 
     def __post_init__(self) -> None:
-        if not self.rc > 0:
-            raise ValueError(f"noncentral_pano camera: rc must be > 0 metres (rc = 0 is the central 'equirect' "
-                             f"camera), got {self.rc}")
+        if not self.rc >= 0:
+            raise ValueError(f"noncentral_pano camera: rc must be >= 0 metres, got {self.rc}")
         self.angles  # validates the angular range
 
     @property

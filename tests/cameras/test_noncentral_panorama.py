@@ -77,4 +77,9 @@ def test_inside_circle_invalid_and_config():
     uv, valid = cam.project(torch.tensor([[0.5, 0.0, 0.5], [0.0, 3.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64))
     assert not valid.any() and torch.isfinite(uv).all()
     with pytest.raises(ValueError, match="rc"):
-        NonCentralPanorama(width=64, height=32, rc=0.0)
+        NonCentralPanorama(width=64, height=32, rc=-0.1)
+    # rc = 0 degenerates to the equirect geometry
+    zero, eq = NonCentralPanorama(width=64, height=32, rc=0.0), Equirectangular(width=64, height=32)
+    pts = torch.randn(50, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    (uv0, v0), (uv1, v1) = zero.project(pts), eq.project(pts)
+    assert torch.equal(v0, v1) and torch.allclose(uv0, uv1, atol=1e-12)
