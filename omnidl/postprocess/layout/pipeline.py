@@ -71,13 +71,22 @@ def _fail(reason, world, t0, **info):
     return Layout.failed(reason, world=world, time_s=time.perf_counter() - t0, **info)
 
 
+_CONTROLLER: list = []
+
+
 def _single_thread_blas():
     """Tiny matrices: BLAS threads only add overhead (and stall badly on a loaded machine)."""
+    import contextlib
     try:
-        from threadpoolctl import threadpool_limits
-        return threadpool_limits(1)
+        if not _CONTROLLER:
+            from threadpoolctl import ThreadpoolController
+            _CONTROLLER.append(ThreadpoolController())
+        if _CONTROLLER[0] is None:
+            return contextlib.nullcontext()
+        return _CONTROLLER[0].limit(limits=1, user_api="blas")
     except Exception:  # noqa: BLE001  (optional dependency)
-        import contextlib
+        if not _CONTROLLER:
+            _CONTROLLER.append(None)
         return contextlib.nullcontext()
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from .rays import ColumnRays
-from .solvers import WallFit, predicted_elevation, ransac_iterations, solve_walls, solve_walls_central
+from .solvers import WallFit, ransac_iterations, solve_walls, solve_walls_central
 
 
 def _gather(rays: ColumnRays, cols: np.ndarray, mask: np.ndarray):
@@ -20,15 +20,31 @@ def _gather(rays: ColumnRays, cols: np.ndarray, mask: np.ndarray):
 
 
 def reprojection_errors(fit_theta, fit_d, fit_hc, fit_hf, rays: ColumnRays, cols: np.ndarray):
-    """Absolute latitude errors ``(..., n)`` of ceiling and floor for walls broadcast over columns."""
-    lat_c, lat_f = rays.elevations()
+    """Latitude errors ``(..., n)`` (radians, first order) of ceiling and floor, walls broadcast over columns.
+
+    The column sees the wall line at horizontal range ``s`` and predicted ``tan(lat) = h / s``; the
+    error ``|h/s - tan(lat_obs)| cos^2(lat_obs)`` is the angular error to first order (no arctan:
+    this runs on every hypothesis x column).
+    """
+    tc, tf, wc, wf = rays._cached("tan", lambda: _tan_tables(rays))
     o2 = rays.origin[cols][..., :2]
     b = rays.horizontal[cols]
-    pc, _ = predicted_elevation(fit_theta[..., None], fit_d[..., None], fit_hc[..., None], o2, b)
-    pf, _ = predicted_elevation(fit_theta[..., None], fit_d[..., None], fit_hf[..., None], o2, b)
-    ec = np.abs(pc - lat_c[cols])
-    ef = np.abs(pf - lat_f[cols])
-    return np.where(np.isfinite(ec), ec, np.inf), np.where(np.isfinite(ef), ef, np.inf)
+    nx, ny = -np.sin(fit_theta)[..., None], np.cos(fit_theta)[..., None]
+    nb = nx * b[..., 0] + ny * b[..., 1]
+    no = nx * o2[..., 0] + ny * o2[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_s = nb / (fit_d[..., None] - no)
+    bad = ~((nb > 1e-9) & (inv_s > 0))
+    ec = np.abs(fit_hc[..., None] * inv_s - tc[cols]) * wc[cols]
+    ef = np.abs(fit_hf[..., None] * inv_s - tf[cols]) * wf[cols]
+    ec[bad | ~np.isfinite(ec)] = np.inf
+    ef[bad | ~np.isfinite(ef)] = np.inf
+    return ec, ef
+
+
+def _tan_tables(rays: ColumnRays):
+    lat_c, lat_f = rays.elevations()
+    return np.tan(lat_c), np.tan(lat_f), np.cos(lat_c) ** 2, np.cos(lat_f) ** 2
 
 
 def ransac_walls(rays: ColumnRays, wall_columns: list[np.ndarray], threshold: float,

@@ -55,20 +55,30 @@ class ColumnRays:
     height: int
     rc: float
 
+    def _cached(self, key, fn):
+        cache = self.__dict__.setdefault("_cache", {})
+        if key not in cache:
+            cache[key] = fn()
+        return cache[key]
+
     @property
     def horizontal(self) -> np.ndarray:
-        """``(W, 2)`` unit horizontal direction ``b`` of each column."""
-        return np.stack([np.sin(self.azimuth), np.cos(self.azimuth)], -1)
+        """``(W, 2)`` unit horizontal direction ``b`` of each column (from the ray directions)."""
+        def f():
+            h = self.ceiling[:, :2]
+            n = np.linalg.norm(h, axis=1, keepdims=True)
+            return h / np.where(n > 0, n, 1.0)
+        return self._cached("b", f)
 
     def elevations(self) -> tuple[np.ndarray, np.ndarray]:
         """Observed ceiling and floor latitudes ``(W,)`` (radians, up positive)."""
         def el(d):
             return np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
-        return el(self.ceiling), el(self.floor)
+        return self._cached("lat", lambda: (el(self.ceiling), el(self.floor)))
 
     def moments(self, which: str) -> np.ndarray:
         """Plücker moments ``o x d`` ``(W, 3)`` of the ``'ceiling'`` or ``'floor'`` rays."""
-        return np.cross(self.origin, getattr(self, which))
+        return self._cached("m_" + which, lambda: np.cross(self.origin, getattr(self, which)))
 
     def subset(self, idx: np.ndarray) -> "ColumnRays":
         return ColumnRays(self.azimuth[idx], self.origin[idx], self.ceiling[idx], self.floor[idx],

@@ -71,6 +71,21 @@ def wall_rows(dir_c: np.ndarray, mom_c: np.ndarray, dir_f: np.ndarray, mom_f: np
     return np.concatenate([rc, rf], -2)
 
 
+def _right_singular_vectors(A: np.ndarray) -> np.ndarray:
+    """``Vh (..., k, k)`` of ``A (..., n, k)`` with rows sorted by decreasing singular value.
+
+    Tall systems use the eigenvectors of the ``k x k`` Gram matrix (far cheaper than an SVD of the
+    ``n x k`` matrix; rows are normalised by the caller so the squared conditioning is harmless in
+    float64); short ones (minimal samples) use the full SVD.
+    """
+    n, k = A.shape[-2], A.shape[-1]
+    if n <= 3 * k:
+        return np.linalg.svd(A, full_matrices=n < k)[2]
+    G = np.swapaxes(A, -1, -2) @ A
+    _, V = np.linalg.eigh(G)                      # ascending eigenvalues
+    return np.swapaxes(V[..., ::-1], -1, -2)
+
+
 def _quadratic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Real roots of ``a x^2 + b x + c`` ``(..., 2)`` (NaN where none; linear case handled)."""
     disc = b * b - 4 * a * c
@@ -132,7 +147,7 @@ def solve_walls_from_rows(A: np.ndarray) -> WallFit:
     scale = np.where(scale > 0, scale, 1.0)
     An = A / scale[:, None, None]
     try:
-        _, _, Vh = np.linalg.svd(An, full_matrices=An.shape[-2] < An.shape[-1])
+        Vh = _right_singular_vectors(An)
     except np.linalg.LinAlgError:
         nan = np.full(B, np.nan)
         return WallFit(nan, nan, nan, nan, np.zeros(B, bool), np.full(B, np.inf))
@@ -209,7 +224,7 @@ def solve_manhattan(A: np.ndarray, label: np.ndarray):
     scale = np.sqrt((A * A).sum() / max(A.shape[0], 1)) or 1.0
     An = A[:, used] / scale
     try:
-        _, _, Vh = np.linalg.svd(An, full_matrices=An.shape[0] < An.shape[1])
+        Vh = _right_singular_vectors(An)
     except np.linalg.LinAlgError:
         return 0.0, np.zeros(n_walls), np.nan, np.nan, False
     W0 = np.zeros(A.shape[1])
