@@ -111,7 +111,7 @@ def _hash(i: Tensor, j: Tensor) -> Tensor:
     return torch.remainder(h, 1021).to(torch.float32) / 1021.0
 
 
-def texture_mix(texture: Tensor, scale: Tensor, su: Tensor, sv: Tensor) -> Tensor:
+def texture_mix(texture: Tensor, scale: Tensor, su: Tensor, sv: Tensor, kinds: list[int] | None = None) -> Tensor:
     """Blend weight in ``[0, 1]`` between colour1 (0) and colour2 (1) per point.
 
     ``texture``, ``scale``: per point material fields ``(P,)``; ``su``, ``sv``: surface coordinates
@@ -119,7 +119,7 @@ def texture_mix(texture: Tensor, scale: Tensor, su: Tensor, sv: Tensor) -> Tenso
     for ``PANEL``). Each texture kind is evaluated only on its own points.
     """
     w = torch.zeros_like(su)
-    for kind in torch.unique(texture).tolist():
+    for kind in (torch.unique(texture).tolist() if kinds is None else kinds):
         if kind == PLAIN:
             continue
         idx = (texture == kind).nonzero()[:, 0]

@@ -174,7 +174,8 @@ def _shade(scene: Scene, mats: dict, mat: Tensor, tu: Tensor, tv: Tensor, point:
     """Lambertian shading ``(P, 3)``: albedo (procedural texture) x (ambient + point lights)."""
     c1 = mats["c1"].to(dtype)[mat]
     c2 = mats["c2"].to(dtype)[mat]
-    w = M.texture_mix(mats["texture"][mat], mats["scale"].to(dtype)[mat], tu, tv)[:, None]
+    kinds = sorted(set(np.asarray(scene.materials["texture"]).tolist()))
+    w = M.texture_mix(mats["texture"][mat], mats["scale"].to(dtype)[mat], tu, tv, kinds)[:, None]
     albedo = c1 * (1 - w) + c2 * w
     hits = hit.nonzero()[:, 0]
     p, n = point[hits], normal[hits]

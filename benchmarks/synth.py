@@ -1,0 +1,98 @@
+"""Speed of the built-in data engine (omnidl.synth): one panorama with RGB, depth, semantics, normals and layout.
+
+    python benchmarks/synth.py [--threads 2] [--reps 7] [--profile]
+
+Targets (issue 4): 1024x512 <= 0.5 s and 256x128 <= 50 ms on 2 CPU cores. The named baseline measured in
+the same run is ``brute force``: the same render with object culling disabled (every box slab-tested
+against every pixel); the ratio baseline / engine is printed next to the absolute medians.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from omnidl.cameras import build
+from omnidl.synth import place_camera, render, sample_room
+from omnidl.synth import raycast
+
+
+def _median_time(fn, reps: int) -> float:
+    fn()  # warm-up (ray cache, allocator)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+class _BruteForce:
+    """Context manager: cast_boxes without culling (one group per box, every pixel a candidate)."""
+
+    def __enter__(self):
+        self.orig = raycast.cast_boxes
+
+        def brute(origin, direction, boxes, groups, t_best, centre, rig_radius):
+            single = [torch.tensor([i]) for g in groups for i in g.tolist()]
+            return self.orig(origin, direction, boxes, single, t_best, centre, 1e9)
+
+        import omnidl.synth.render as r
+        self.r = r
+        r.cast_boxes = brute
+        return self
+
+    def __exit__(self, *exc):
+        self.r.cast_boxes = self.orig
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--reps", type=int, default=7)
+    p.add_argument("--seeds", type=int, nargs="+", default=[3, 11, 42])
+    p.add_argument("--profile", action="store_true")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"torch {torch.__version__}, {args.threads} threads, median of {args.reps}")
+    targets = {(1024, 512): 0.5, (256, 128): 0.05}
+    for cam_type in ("equirect", "noncentral_pano"):
+        for (w, h), target in targets.items():
+            cfg = {"type": cam_type, "width": w, "height": h}
+            if cam_type == "noncentral_pano":
+                cfg["rc"] = 1.0
+            cam = build(cfg)
+            for seed in args.seeds:
+                sc = sample_room(seed)
+                try:
+                    pose = place_camera(sc, cam, seed)
+                except RuntimeError:
+                    continue
+                t_engine = _median_time(lambda: render(sc, cam, pose, layout=True), args.reps)
+                with _BruteForce():
+                    t_brute = _median_time(lambda: render(sc, cam, pose, layout=True), max(3, args.reps // 2))
+                print(f"{cam_type:16s} {w:4d}x{h:<4d} seed {seed:3d}: {sc.num_primitives:3d} primitives "
+                      f"({sc.num_walls} walls, {len(sc.boxes)} boxes, {len(sc.decals)} openings) | engine "
+                      f"{t_engine * 1e3:7.1f} ms (target {target * 1e3:.0f} ms, {t_engine / target:.2f}x target) | "
+                      f"brute force {t_brute * 1e3:7.1f} ms | speed-up x{t_brute / t_engine:.2f}")
+    t_room = _median_time(lambda: [sample_room(s) for s in range(20)], 3) / 20
+    print(f"room sampling (floor plan + furniture): {t_room * 1e3:.1f} ms per room")
+    if args.profile:
+        import cProfile
+        import pstats
+        cam = build({"type": "equirect", "width": 1024, "height": 512})
+        sc = sample_room(args.seeds[0])
+        pose = place_camera(sc, cam, args.seeds[0])
+        render(sc, cam, pose)
+        prof = cProfile.Profile()
+        prof.enable()
+        render(sc, cam, pose)
+        prof.disable()
+        pstats.Stats(prof).sort_stats("tottime").print_stats(20)
+
+
+if __name__ == "__main__":
+    main()
