@@ -3,10 +3,10 @@
 Run: ``python -m benchmarks.projected_conv`` or ``python benchmarks/projected_conv.py``
 (options: ``--threads 2 --reps 7 --channels 64 --height 128 --width 256 --batch 1 4``).
 
-For each batch size, the three variants run interleaved (one repetition of each per
-round) after a warm-up; the table shows median times in milliseconds of forward and
-forward+backward (input and weight require grad; offsets fixed) and the ratios
-fast / conv2d and deform_conv2d / fast. The camera is an equirectangular panorama of the
+For each batch size, the variants run interleaved (one repetition of each per
+round) after a warm-up; the table shows median and minimum times in milliseconds of forward and
+forward+backward (input and weight require grad; offsets fixed) and the ratios of the
+medians fast / conv2d and deform_conv2d / fast. The camera is an equirectangular panorama of the
 input size, 3x3 kernel, stride 1, padding 1, float32. NCHW and channels-last inputs are
 timed separately (each against nn.Conv2d in the same layout). Also printed: the cache
 memory of one layer (sampling plan, offsets).
@@ -86,7 +86,8 @@ def run(channels: int = 64, height: int = 128, width: int = 256, batches=(1, 4),
                 times[name]["fwd"].append(_timed(lambda: fwd(m, cl)))
                 times[name]["fwdbwd"].append(_timed(lambda: fwdbwd(m, cl)))
         med = {n: {k: statistics.median(v) for k, v in t.items()} for n, t in times.items()}
-        row = {"batch": B, **{f"{n}_{k}_ms": v for n, t in med.items() for k, v in t.items()}}
+        row = {"batch": B, **{f"{n}_{k}_ms": v for n, t in med.items() for k, v in t.items()},
+               **{f"{n}_{k}_min_ms": min(v) for n, t in times.items() for k, v in t.items()}}
         for k in ("fwd", "fwdbwd"):
             row[f"fast_vs_conv2d_{k}"] = med["fast"][k] / med["conv2d"][k]
             row[f"fast_cl_vs_conv2d_cl_{k}"] = med["fast_cl"][k] / med["conv2d_cl"][k]
@@ -99,13 +100,15 @@ def run(channels: int = 64, height: int = 128, width: int = 256, batches=(1, 4),
     print(f"# cache per layer: {info['plan_bytes'] / 2 ** 20:.1f} MiB sampling plan (taps + chunked CSR "
           f"transposes), {info['offset_bytes'] / 2 ** 20:.1f} MiB offsets+mask (float64 master + float32 copy, "
           f"the latter only for the torchvision backend); first call (offsets + plan) {build_ms:.0f} ms")
-    print("| batch | variant | fwd ms | fwd+bwd ms | fwd / conv2d | fwd+bwd / conv2d |")
+    print("| batch | variant | fwd ms (median / min) | fwd+bwd ms (median / min) | fwd / conv2d | "
+          "fwd+bwd / conv2d |")
     print("|---|---|---|---|---|---|")
     for row in rows:
         for n in variants:
             base = "conv2d_cl" if n.endswith("_cl") else "conv2d"
             f, fb = row[f"{n}_fwd_ms"], row[f"{n}_fwdbwd_ms"]
-            print(f"| {row['batch']} | {n} | {f:.1f} | {fb:.1f} | {f / row[base + '_fwd_ms']:.2f}x "
+            print(f"| {row['batch']} | {n} | {f:.1f} / {row[n + '_fwd_min_ms']:.1f} | {fb:.1f} / "
+                  f"{row[n + '_fwdbwd_min_ms']:.1f} | {f / row[base + '_fwd_ms']:.2f}x "
                   f"| {fb / row[base + '_fwdbwd_ms']:.2f}x |")
     for row in rows:
         line = (f"batch {row['batch']}: fast fwd+bwd = {row['fast_vs_conv2d_fwdbwd']:.2f}x conv2d (NCHW), "

@@ -31,8 +31,9 @@ How the kernel is built, for an input (feature map) of size ``H x W``:
    tap points are projected at a far distance, see ``FAR``).
 5. The reference kernel is rotated rigidly so that ``r0`` goes to ``a``: ``"upright"``
    rotation (yaw about the camera ``y`` axis then pitch, so kernel rows stay along
-   latitude circles — used for panoramas) or ``"axial"`` (the smallest rotation taking
-   ``r0`` to ``a`` — used for fisheye/pinhole/catadioptric, radially symmetric).
+   latitude circles — used for panoramas, i.e. cameras that wrap horizontally and
+   equirectangular ones) or ``"axial"`` (the smallest rotation taking ``r0`` to ``a`` —
+   used for the others: fisheye/pinhole/catadioptric, radially symmetric).
 6. Taps are projected with ``cam`` and turned into offsets. For cameras that wrap
    horizontally the tap column is taken as the representative nearest the anchor (so
    ``|dx|`` stays small), and the sampler wraps column indices modulo ``W``.
@@ -139,7 +140,7 @@ def _is_panorama(camera: Camera) -> bool:
     while hasattr(base, "base") and isinstance(getattr(base, "base"), Camera):
         base = base.base
     from omnidl.cameras.equirectangular import Equirectangular
-    return camera.wraps_horizontally or isinstance(base, Equirectangular) or not camera.central
+    return camera.wraps_horizontally or isinstance(base, Equirectangular)
 
 
 def compute_sampling(camera: Camera, in_hw: tuple[int, int], kernel_size: int | Pair, stride: int | Pair = 1,
@@ -157,7 +158,8 @@ def compute_sampling(camera: Camera, in_hw: tuple[int, int], kernel_size: int | 
             Without wrap, taps beyond the left/right border read zero.
         kernel: ``"grid"`` (default; exact pixel grid at the reference pixel) or ``"tangent"``
             (square lattice on the tangent plane), see the module docstring.
-        rotation: ``"upright"``, ``"axial"`` or ``"auto"`` (upright for panoramas/non-central).
+        rotation: ``"upright"``, ``"axial"`` or ``"auto"`` (upright for panoramas — cameras that
+            wrap horizontally or equirectangular ones — axial otherwise).
         image_padding: ``(pad_right, pad_bottom)`` pixels the calibrated image was padded with
             before the network (thesis Eq. 7.3); passed to ``camera.resized``.
 

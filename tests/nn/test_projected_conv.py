@@ -116,7 +116,15 @@ def test_batch_equals_per_image_and_channels_last_input():
     x = torch.randn(3, 3, 8, 16, dtype=torch.float64)
     y = conv(x)
     assert torch.allclose(y[1:2], conv(x[1:2]), atol=1e-12)
-    assert torch.allclose(conv(x.to(memory_format=torch.channels_last)), y, atol=1e-12)
+    assert y.is_contiguous()  # NCHW in, NCHW out
+    xc = x.to(memory_format=torch.channels_last).requires_grad_(True)
+    yc = conv(xc)
+    assert yc.is_contiguous(memory_format=torch.channels_last) and torch.allclose(yc, y, atol=1e-12)
+    yc.sum().backward()
+    assert xc.grad.is_contiguous(memory_format=torch.channels_last)
+    xn = x.clone().requires_grad_(True)
+    conv(xn).sum().backward()
+    assert xn.grad.is_contiguous() and torch.allclose(xn.grad, xc.grad, atol=1e-12)
 
 
 def test_configuration_errors():
