@@ -29,7 +29,7 @@ class GroundTruthMaps:
 
 def test_pipeline_on_ground_truth_maps_recovers_random_rotations():
     g = torch.Generator().manual_seed(0)
-    R_gt = random_rotations(4, math.pi, generator=g)
+    R_gt = random_rotations(3, math.pi, generator=g)
     ref = procedural_panorama(None, 64, 128, seed=4)[0]
     frames = list(procedural_panorama(R_gt, 64, 128, seed=4))
     fn = GroundTruthMaps([ref] + frames, [torch.eye(3, dtype=torch.float64)] + list(R_gt))
