@@ -209,15 +209,24 @@ def convert_state_dict(official: Mapping[str, Tensor]) -> "OrderedDict[str, Tens
     return out
 
 
-def load_official_checkpoint(path: str, map_location: str | torch.device = "cpu", **model_kwargs: Any):
+def load_official_checkpoint(path: str, map_location: str | torch.device = "cpu", weights_only: bool = True,
+                             **model_kwargs: Any):
     """Build omnidl's FreDSNet from an official checkpoint file (``{'kargs', 'state_dict', ...}`` or a bare
-    state dict) and load the converted weights with ``strict=True``. Returns ``(model, checkpoint_args)``."""
+    state dict) and load the converted weights with ``strict=True``. Returns ``(model, checkpoint_args)``.
+
+    ``weights_only=False`` un-pickles arbitrary objects: only for files you trust.
+    """
     from .fredsnet import FreDSNet
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+        ckpt = torch.load(path, map_location=map_location, weights_only=weights_only)
     except FileNotFoundError:
         raise FileNotFoundError(f"official FreDSNet checkpoint {path!r} not found (download it yourself from "
                                 "the link in the FreDSNet README)") from None
+    except Exception as exc:  # noqa: BLE001  (torch raises UnpicklingError subclasses)
+        if not weights_only:
+            raise
+        raise ValueError(f"{path!r} could not be read with torch.load(weights_only=True) ({exc}); if you trust "
+                         "the file, pass weights_only=False (--unsafe-pickle on the command line)") from exc
     sd = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
     if not isinstance(sd, Mapping):
         raise ValueError(f"{path!r}: expected a FreDSNet checkpoint dict with a 'state_dict', got {type(ckpt).__name__}")
@@ -235,8 +244,9 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("official", help="official FreDSNet checkpoint (.pth)")
     ap.add_argument("output", help="where to write {'model_kwargs', 'state_dict'} for omnidl")
+    ap.add_argument("--unsafe-pickle", action="store_true", help="torch.load(weights_only=False): trusted files only")
     a = ap.parse_args(argv)
-    model, args = load_official_checkpoint(a.official)
+    model, args = load_official_checkpoint(a.official, weights_only=not a.unsafe_pickle)
     kwargs = dict(num_classes=model.num_classes, backbone=model.backbone.name, width=1.0, semantic_bn_relu=True)
     atomic_torch_save(a.output, {"model_kwargs": kwargs, "state_dict": model.state_dict(), "official_args": args})
     print(f"wrote {a.output}: build with create_model('fredsnet', **{kwargs})")
