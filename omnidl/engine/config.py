@@ -114,6 +114,7 @@ class TrainConfig:
     checkpoint: Optional[str] = None
     postprocess: list[str] = field(default_factory=list)
     postprocess_options: Any = field(default_factory=dict)
+    eval: EvalConfig = field(default_factory=EvalConfig)  # evaluate.py options (here too: experiments set both)
     search: Any = None                 # filled by +search=... (loss-weight search)
     name: str = "run"                  # free label (experiments set it)
     notes: Any = None
@@ -124,7 +125,6 @@ class EvaluateConfig(TrainConfig):
     """Root schema of ``configs/evaluate.yaml``."""
 
     task: str = "evaluate"
-    eval: EvalConfig = field(default_factory=EvalConfig)
 
 
 _REGISTERED = False
