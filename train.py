@@ -14,6 +14,9 @@ prepare_argv()
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> float | None:
+    if cfg.get("search"):  # python train.py +search=<name>: an Ax loss-weight search of short training runs
+        from omnidl.search import run_search_from_config
+        return run_search_from_config(cfg).best_objective
     from omnidl.engine import train
     summary = train(cfg)
     return summary.get("best")  # the optimised value, for Hydra sweepers
