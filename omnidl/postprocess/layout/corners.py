@@ -16,12 +16,12 @@ def find_peaks(prob: np.ndarray, threshold: float = 0.5, radius: int | None = No
     """Sub-pixel columns (continuous ``u``) of local maxima of a circular ``(W,)`` probability.
 
     A column is a peak when it is the maximum within ``radius`` columns (circularly; default
-    ``W/100``) and above ``threshold``. The position is refined by a parabola through the peak and
+    ``W/200``, at least 2) and above ``threshold``. The position is refined by a parabola through the peak and
     its neighbours. Returns sorted ``u`` values in ``[0, W)``.
     """
     p = np.nan_to_num(np.asarray(prob, float).reshape(-1), nan=0.0)
     W = p.shape[0]
-    r = max(1, int(round(W / 100))) if radius is None else max(1, int(radius))
+    r = max(2, int(round(W / 200))) if radius is None else max(1, int(radius))
     idx = np.arange(W)
     win = np.stack([np.roll(p, k) for k in range(-r, r + 1)], 0)
     is_max = (p >= win.max(0)) & (p > threshold)

@@ -42,7 +42,7 @@ class LayoutOptions:
     """Options of :func:`estimate_layout` (thresholds in pixels unless stated)."""
 
     corner_threshold: float = 0.5        # corner probability peak threshold
-    corner_radius: int | None = None     # peak NMS radius (columns), default W/100
+    corner_radius: int | None = None     # peak NMS radius (columns), default W/200
     wall_margin: float = 2.0             # columns skipped next to each corner
     min_wall_columns: int = 6            # fewer columns: the wall is "short" (no own RANSAC)
     ransac_threshold: float = 2.0        # inlier threshold (pixels of latitude)
