@@ -66,20 +66,24 @@ def cast_room(origin: Tensor, direction: Tensor, polygon: Tensor, height: float)
     return RoomHit(t_out, kind, wall, torch.where(is_wall, s_hit, torch.zeros_like(s_hit)))
 
 
-def _slab(o: Tensor, d: Tensor, centre: Tensor, half: Tensor, cos_y: float, sin_y: float) -> Tensor:
-    """Entry range of rays ``(K, 3)`` into one yaw-rotated box; ``inf`` where missed."""
-    px, py = o[:, 0] - centre[0], o[:, 1] - centre[1]
-    lo = torch.stack([cos_y * px + sin_y * py, -sin_y * px + cos_y * py, o[:, 2] - centre[2]], -1)
-    ld = torch.stack([cos_y * d[:, 0] + sin_y * d[:, 1], -sin_y * d[:, 0] + cos_y * d[:, 1], d[:, 2]], -1)
-    tiny = torch.where(ld >= 0, torch.full_like(ld, 1e-12), torch.full_like(ld, -1e-12))
+def _slab(o: Tensor, d: Tensor, boxes: Tensor) -> Tensor:
+    """Entry range ``(K, nb)`` of rays ``o, d (K, 3)`` into yaw-rotated boxes ``(nb, 9)``; ``inf`` where missed."""
+    c, s = torch.cos(boxes[:, 6]), torch.sin(boxes[:, 6])               # (nb,)
+    px = o[:, None, 0] - boxes[:, 0]                                     # (K, nb)
+    py = o[:, None, 1] - boxes[:, 1]
+    lo = torch.stack([c * px + s * py, -s * px + c * py, (o[:, None, 2] - boxes[:, 2]).expand_as(px)], -1)
+    dx, dy = d[:, None, 0], d[:, None, 1]
+    ld = torch.stack([c * dx + s * dy, -s * dx + c * dy, d[:, None, 2].expand_as(px)], -1)
+    tiny = torch.where(ld >= 0, 1e-12, -1e-12).to(ld.dtype)
     ld = torch.where(ld.abs() < 1e-12, tiny, ld)
-    inv = 1.0 / ld
+    inv = ld.reciprocal_()
+    half = boxes[:, 3:6]
     t1 = (-half - lo) * inv
-    t2 = (half - lo) * inv
+    t2 = (half - lo).mul_(inv)
     t_near = torch.minimum(t1, t2).amax(-1)
     t_far = torch.maximum(t1, t2).amin(-1)
     hit = (t_far >= t_near) & (t_near > _EPS)
-    return torch.where(hit, t_near, torch.full_like(t_near, math.inf))
+    return t_near.masked_fill_(~hit, math.inf)
 
 
 def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Tensor], t_best: Tensor,
@@ -136,16 +140,11 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
         o = origin.expand(1, 3) if central else origin[idx]
         if central:
             o = o.expand(len(idx), 3)
-        tb = t_best[idx]
-        bid = box_id[idx]
-        for k in g.tolist():
-            row = boxes_cpu[k]
-            t = _slab(o, d, boxes[k, :3], boxes[k, 3:6], math.cos(float(row[6])), math.sin(float(row[6])))
-            closer = t < tb
-            tb = torch.where(closer, t, tb)
-            bid = torch.where(closer, torch.full_like(bid, k), bid)
-        t_best[idx] = tb
-        box_id[idx] = bid
+        tg, kg = _slab(o, d, boxes[g.to(boxes.device)]).min(dim=1)         # (K,)
+        closer = tg < t_best[idx]
+        sel = idx[closer]
+        t_best[sel] = tg[closer]
+        box_id[sel] = g.to(box_id.device)[kg[closer]]
     return t_best, box_id
 
 

@@ -177,23 +177,30 @@ def _shade(scene: Scene, mats: dict, mat: Tensor, tu: Tensor, tv: Tensor, point:
     kinds = sorted(set(np.asarray(scene.materials["texture"]).tolist()))
     w = M.texture_mix(mats["texture"][mat], mats["scale"].to(dtype)[mat], tu, tv, kinds)[:, None]
     albedo = c1 * (1 - w) + c2 * w
-    hits = hit.nonzero()[:, 0]
+    everything = bool(hit.all())
+    hits = slice(None) if everything else hit.nonzero()[:, 0]
     p, n = point[hits], normal[hits]
-    light = torch.full_like(p[:, 0], scene.ambient)
-    for row in scene.lights:
-        lp = torch.as_tensor(row[:3], dtype=dtype, device=device)
-        v = lp - p
-        dist = v.norm(dim=-1).clamp_min(1e-6)
-        lam = ((n * v).sum(-1) / dist).clamp_min(0.0)
-        contrib = float(row[3]) * lam / (1.0 + 0.25 * dist * dist)
-        if shadows and len(scene.boxes):
-            contrib = contrib * _shadow(p, lp, v, dist, boxes, groups)
-        light += contrib
+    lights = torch.as_tensor(scene.lights, dtype=dtype, device=device)             # (L, 4)
+    lp, power = lights[:, :3], lights[:, 3]
+    # all lights at once: n.(l - p) and |l - p|^2 from (P, L) products
+    n_dot_l = n @ lp.T - (n * p).sum(-1, keepdim=True)
+    dist2 = ((p * p).sum(-1, keepdim=True) - 2 * p @ lp.T + (lp * lp).sum(-1)).clamp_min(1e-12)
+    lam = (n_dot_l * dist2.rsqrt()).clamp_min(0.0)
+    contrib = power * lam / (1.0 + 0.25 * dist2)                                    # (P, L)
+    if shadows and len(scene.boxes):
+        for j in range(len(lp)):
+            v = lp[j] - p
+            dist = v.norm(dim=-1).clamp_min(1e-6)
+            contrib[:, j] *= _shadow(p, lp[j], v, dist, boxes, groups)
+    light = scene.ambient + contrib.sum(-1)
     light = 1.25 * light / (1.0 + 0.25 * light)      # soft highlight roll-off
     emissive = mats["emissive"][mat[hits]]
     a = albedo[hits]
+    shaded = torch.where(emissive[:, None], a, a * light[:, None]).clamp_(0.0, 1.0)
+    if everything:
+        return shaded
     colour = torch.zeros_like(albedo)
-    colour[hits] = torch.where(emissive[:, None], a, a * light[:, None]).clamp(0.0, 1.0)
+    colour[hits] = shaded
     return colour
 
 
