@@ -365,6 +365,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
                     for k, v in terms.items():
                         writer.add_scalar(f"train/loss_{k}", float(v), step)
                 bar.set_postfix(loss=f"{running / running_n:.4g}", lr=f"{lr:.2e}")
+                if not bool(tc.progress):  # no bar: a log line instead
+                    log.info("step %d/%d epoch %d: loss %.4g, lr %.2e", step, total_steps, epoch,
+                             running / running_n, lr)
                 running, running_n = 0.0, 0
             vstep = int(tc.val_every_steps)
             if (vstep > 0 and step % vstep == 0) or step >= total_steps:
