@@ -43,8 +43,8 @@ CHUNK_BYTES = 2_500_000
 class SamplingPlan:
     """Bilinear taps of a fixed-offset convolution on one input size (see module docstring).
 
-    ``idx (N, 4)`` int64 flat input pixels and ``weight (N, 4)`` bilinear weights (0 for
-    corners that read zero), ``N = Ho * Wo * kh * kw``. Chunked sparse transposes are
+    ``idx (N, 4)`` flat input pixels (int32; int64 for huge images) and ``weight (N, 4)``
+    bilinear weights (0 for corners that read zero), ``N = Ho * Wo * kh * kw``. Chunked sparse transposes are
     built on first use per chunk length and kept in ``chunk_cache``.
     """
 
@@ -77,13 +77,14 @@ class SamplingPlan:
             col = torch.arange((e - s) * K, device=inp.device).repeat_interleave(4)[nz]
             w = w[nz]
             lo, hi = (int(inp.min()), int(inp.max()) + 1) if inp.numel() else (0, 1)
-            inp = inp - lo
+            inp = inp.long() - lo
             order = torch.argsort(inp * ((e - s) * K) + col)
+            itype = torch.int32 if w.numel() < 2 ** 31 - 1 else torch.int64
             crow = torch.zeros(hi - lo + 1, dtype=torch.int64, device=inp.device)
             crow[1:] = torch.cumsum(torch.bincount(inp, minlength=hi - lo), 0)
             with warnings.catch_warnings():
                 warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
-                st = torch.sparse_csr_tensor(crow, col[order], w[order], (hi - lo, (e - s) * K),
+                st = torch.sparse_csr_tensor(crow.to(itype), col[order].to(itype), w[order], (hi - lo, (e - s) * K),
                                              check_invariants=False)
             out.append((s, e, lo, hi, st))
         self.chunk_cache[positions] = out
@@ -148,6 +149,7 @@ def build_plan(offsets: Tensor, mask: Tensor | None, in_hw: Pair, kernel_size: P
     ok = ok & (w != 0)
     w = torch.where(ok, w, torch.zeros_like(w))
     idx = torch.where(ok, cy * W + cx, torch.zeros_like(cy)).long()
+    idx = idx.to(torch.int32 if H * W < 2 ** 31 - 1 else torch.int64)
     return SamplingPlan((H, W), (Ho, Wo), tuple(kernel_size), idx.reshape(-1, 4).contiguous(),
                         w.reshape(-1, 4).contiguous())
 
