@@ -1,7 +1,7 @@
 """Collect a sweep into a results table: ``python -m omnidl.report multirun/<dir> [--out DIR]``.
 
 Every job folder below ``<dir>`` that holds a ``metrics.json`` becomes one row. The row is named by the
-job's experiment code (``experiment_code`` in its ``.hydra/config.yaml``, e.g. ``F-Std-CE-B``), else by its
+job's experiment code (``name`` in its ``.hydra/config.yaml``, set by the experiment configs, e.g. ``F-Std-CE-B``), else by its
 Hydra overrides. Columns are the scalar metrics, in the order of Tables 4.1–4.6 when present
 (MRE, MAE, RMSE, RMSElog, δ¹, δ², δ³, mIoU, mAcc) and alphabetically after that.
 Writes ``results.md`` and ``results.csv``; when jobs report metrics per rotation angle
@@ -56,8 +56,8 @@ def _job_name(job: Path, root: Path) -> str:
         try:
             from omegaconf import OmegaConf
             c = OmegaConf.load(cfg)
-            code = OmegaConf.select(c, "experiment_code", default=None)
-            if code:
+            code = OmegaConf.select(c, "experiment_code", default=None) or OmegaConf.select(c, "name", default=None)
+            if code and code != "run":
                 return str(code)
         except Exception:
             pass

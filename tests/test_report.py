@@ -7,7 +7,7 @@ from omnidl.report import main, write_report
 def _job(root, i, code, metrics):
     d = root / str(i)
     (d / ".hydra").mkdir(parents=True)
-    (d / ".hydra" / "config.yaml").write_text(f"experiment_code: {code}\nmodel: {{name: fredsnet}}\n")
+    (d / ".hydra" / "config.yaml").write_text(f"name: {code}\nmodel: {{name: fredsnet}}\n")
     (d / ".hydra" / "overrides.yaml").write_text(f"- experiment={code}\n")
     (d / "metrics.json").write_text(json.dumps(metrics))
 

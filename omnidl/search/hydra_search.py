@@ -108,6 +108,19 @@ def _parse(val: str) -> Any:
         return val
 
 
+def trial_metrics(summary: dict) -> dict[str, float]:
+    """Metrics of one training run for the objective: the final validation metrics (``summary["final"]``,
+    e.g. ``val/delta1``), ``best`` (the monitored value) and any other top-level numbers."""
+    out: dict[str, float] = {}
+    for k, v in summary.items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[k] = float(v)
+    for k, v in (summary.get("final") or {}).items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[k] = float(v)
+    return out
+
+
 def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dict] | None = None) -> SearchResult:
     """Entry point used by ``train.py`` when the config has a ``search`` node."""
     train_cfg = training_config_without_search(cfg)
@@ -121,7 +134,7 @@ def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dic
     def evaluate(params: dict, idx: int) -> dict:
         trial_cfg = build(params, idx)
         log.info("search %s: trial %d with %s", spec.name, idx, params)
-        return train_fn(trial_cfg)
+        return trial_metrics(train_fn(trial_cfg))
 
     def on_end(rec: TrialRecord) -> None:
         write_reports(spec, None, search_dir, extra=rec)
