@@ -13,7 +13,7 @@ from omnidl.data.classes import CLASS_ID
 from . import materials as M
 from .layout import layout_ground_truth
 from .placement import upright_rotation
-from .raycast import CEILING, FLOOR, WALL, box_normals, cast_boxes, cast_room
+from .raycast import FLOOR, WALL, box_normals, cast_boxes, cast_room
 from .scene import Scene
 
 

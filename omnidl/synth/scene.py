@@ -123,7 +123,8 @@ class _Builder:
         return np.array([a + s0 * t, a + s1 * t, a + s1 * t + depth * n, a + s0 * t + depth * n])
 
     # -- furniture ----------------------------------------------------------------------------------
-    def free(self, rect: np.ndarray, margin_rects: list[np.ndarray], tall: bool = True) -> bool:
+    def free(self, rect: np.ndarray) -> bool:
+        """``rect (4, 2)`` lies inside the room and overlaps no obstacle or door clearance."""
         if not polygon_inside(rect, self.poly):
             return False
         for other in self.footprints + self.keepout:
@@ -150,7 +151,7 @@ class _Builder:
             rect = self.wall_rect(wall, s0, s1, depth)
             # shrink a hair off the wall so the footprint test is strict
             rect_test = self.wall_rect(wall, s0, s1, depth) + 0.01 * self.inward[wall]
-            if not self.free(rect_test, []):
+            if not self.free(rect_test):
                 continue
             centre = rect.mean(axis=0)
             yaw = float(np.arctan2(self.tangent[wall, 1], self.tangent[wall, 0]))
@@ -168,7 +169,7 @@ class _Builder:
                 yaw = self.rng.uniform(-np.pi, np.pi)
             rect = rect_corners(centre, np.array([width / 2, depth / 2]), yaw)
             big = rect_corners(centre, np.array([width / 2 + margin, depth / 2 + margin]), yaw)
-            if self.free(big, []):
+            if self.free(big):
                 return centre, yaw, rect
         return None
 
