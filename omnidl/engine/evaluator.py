@@ -45,6 +45,8 @@ log = logging.getLogger("omnidl.engine")
 def _sample_name(batch: dict[str, Any], i: int, fallback: int) -> str:
     meta = (batch.get("meta") or [{}] * (i + 1))[i] or {}
     name = meta.get("name") or (Path(meta["image"]).stem if meta.get("image") else None)
+    if name is None and "index" in meta:  # e.g. synthetic samples: <split>_<index>
+        name = f"{meta['split']}_{int(meta['index']):05d}" if "split" in meta else f"{int(meta['index']):05d}"
     name = str(name) if name is not None else f"{fallback:05d}"
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
 
