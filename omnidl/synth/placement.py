@@ -63,9 +63,9 @@ def place_camera(scene: Scene, camera, seed: int | np.random.Generator, rotation
                  margin: float = 0.3, radius: float | None = None, max_tries: int = 2000) -> np.ndarray:
     """A random free camera pose ``(4, 4)`` (camera-to-world) in ``scene``.
 
-    The camera centre lies inside the floor polygon, at least ``margin + rig radius`` from every wall and
-    outside every floor obstacle grown by the same amount (so a non-central rig's circle of radius ``Rc``
-    never passes through a wall or an object), at a height in ``height_range`` below beams.
+    The camera centre lies inside the floor polygon, at least ``max(margin, rig radius + 0.1)`` from every
+    wall and outside every floor obstacle grown by the same amount (so a non-central rig's circle of radius
+    ``Rc`` never passes through a wall or an object), at a height in ``height_range`` below beams.
 
     Args:
         rotation: ``"upright"`` (random yaw), ``"random"`` (random yaw and a tilt about a random
@@ -73,22 +73,22 @@ def place_camera(scene: Scene, camera, seed: int | np.random.Generator, rotation
     """
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     rc = rig_radius(camera) if radius is None else float(radius)
-    keep = margin + rc
+    keep = max(margin, rc + 0.1)   # the rig circle stays >= 10 cm clear of walls and objects
     top = min(height_range[1], scene.extra.get("beam_bottom", scene.height) - keep - 0.1, scene.height - keep - 0.1)
     bottom = max(height_range[0], keep + 0.1)
     if top < bottom:
         raise ValueError(f"no free camera height: room height {scene.height:.2f} m, rig radius {rc:.2f} m")
     lo, hi = scene.polygon.min(axis=0), scene.polygon.max(axis=0)
     fps = scene.footprints
-    for _ in range(max_tries):
-        p = rng.uniform(lo, hi)
-        if not points_in_polygon(p[None], scene.polygon)[0]:
-            continue
-        if distance_to_edges(p[None], scene.polygon)[0] < keep:
-            continue
-        if len(fps) and _near_footprints(p, fps, keep):
-            continue
-        break
+    batch = 256
+    for _ in range(max(1, max_tries // batch)):
+        cand = rng.uniform(lo, hi, size=(batch, 2))
+        ok = points_in_polygon(cand, scene.polygon) & (distance_to_edges(cand, scene.polygon) >= keep)
+        for fp in fps:
+            ok &= ~points_in_polygon(cand, fp) & (distance_to_edges(cand, fp) >= keep)
+        if ok.any():
+            p = cand[int(np.argmax(ok))]
+            break
     else:
         raise RuntimeError("could not find a free camera position (room too cluttered for this rig radius)")
     z = rng.uniform(bottom, top)
@@ -110,10 +110,3 @@ def place_camera(scene: Scene, camera, seed: int | np.random.Generator, rotation
     pose[:3, :3] = rot_z(yaw) @ R_UPRIGHT @ r_up_cam
     pose[:3, 3] = (p[0], p[1], z)
     return pose
-
-
-def _near_footprints(p: np.ndarray, fps: np.ndarray, keep: float) -> bool:
-    for fp in fps:
-        if points_in_polygon(p[None], fp)[0] or distance_to_edges(p[None], fp)[0] < keep:
-            return True
-    return False
