@@ -142,7 +142,8 @@ def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dic
     result = run_search(spec, evaluate, search_dir / "experiment.json", restart=restart, on_trial_end=on_end)
     write_reports(spec, result, search_dir)
     best_dir = Path(cfg.search.get("config_dir") or config_dir())
-    best_path = write_best_loss_config(spec, result, train_cfg, search_dir, best_dir)
+    best_cfg = build(result.best_params, result.best_trial)  # the best trial's own config (search overrides included)
+    best_path = write_best_loss_config(spec, result, best_cfg, search_dir, best_dir)
     print(f"search {spec.name}: best objective {result.best_objective:.5g} at trial {result.best_trial} "
           f"with {result.best_params}\n  best loss config: {best_path}\n  trials: {search_dir / 'trials.md'}")
     return result
@@ -162,7 +163,8 @@ def config_dir() -> Path:
 
 def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: DictConfig, search_dir: Path,
                            configs: Path) -> Path:
-    """Write the loss config with the best ``loss.*`` values as ``configs/loss/<name>_best.yaml``."""
+    """Write the best trial's loss config (``train_cfg.loss`` updated with the best ``loss.*`` values) as
+    ``configs/loss/<name>_best.yaml``."""
     loss = copy.deepcopy(train_cfg.get("loss"))
     if loss is None:
         raise ValueError("search: the training config has no 'loss' node to write the best weights into")
