@@ -42,7 +42,8 @@ class _BruteForce:
             single = [torch.tensor([i]) for g in groups for i in g.tolist()]
             return self.orig(origin, direction, boxes, single, t_best, centre, 1e9)
 
-        import omnidl.synth.render as r
+        import sys
+        r = sys.modules["omnidl.synth.render"]   # the module (omnidl.synth.render is the function)
         self.r = r
         r.cast_boxes = brute
         return self
