@@ -230,10 +230,12 @@ class LayoutMetrics:
     * Map metrics (always): from ``outputs["boundary"] (B, 2, W)`` and ``outputs["corner"] (B, 1, W)``
       logits against ``batch["boundary"]``/``batch["corner"]`` targets (Table 5.1: P/R/Acc/IoU of the
       edge and corner maps, plus the mean absolute boundary error in pixels).
-    * Layout metrics (when ``solver`` is set and the batch has ``corners_3d``/``layout`` ground
-      truth): the pipeline runs on the predictions (``outputs["layout"]`` from a hook is used if
-      present) and CE, CEN, 3D IoU, up-to-scale 3D IoU and 2D IoU are averaged over the images where a
-      layout was recovered; ``layout_fail_rate`` counts the others.
+    * Layout metrics (when ``solver`` is set and the batch has ground-truth corners: the data engine's
+      ``corners_cam``/``num_walls`` or ``corners_3d``): the pipeline runs on the predictions
+      (``outputs["layout"]`` from a hook is used if present; ``camera_height`` selects the central
+      pipeline) and CE, CEN, 3D IoU, up-to-scale 3D IoU and 2D IoU are averaged over the images where
+      a layout was recovered; ``layout_fail_rate`` counts the others. The rig radius comes from ``rc``,
+      ``camera`` or the batch ``meta`` (``rig_radius``).
     """
 
     def __init__(self, solver: str | None = "atlanta", corner_threshold: float = 0.5, edge_thickness: float = 1.0,
@@ -275,22 +277,22 @@ class LayoutMetrics:
                 self._add(f"edge_{k}", v)
             for k, v in cs.items():
                 self._add(f"corner_{k}", v)
-        if self.solver is None or "corners_3d" not in batch:
+        if self.solver is None or not ("corners_3d" in batch or "corners_cam" in batch):
             return
-        from ..postprocess.layout.hooks import layouts_from_outputs
+        from ..postprocess.layout.hooks import gt_layout_from_batch, layouts_from_outputs
         layouts = outputs.get("layout")
         if layouts is None:
             layouts = layouts_from_outputs(outputs, batch, world=self.solver, rc=self.rc, camera=self.camera,
-                                           camera_height=self.camera_height)
+                                           camera_height=self.camera_height, central=self.camera_height is not None)
         for b in range(B):
-            gt3 = batch["corners_3d"][b]
-            gt3 = gt3.detach().cpu().double().numpy() if isinstance(gt3, torch.Tensor) else np.asarray(gt3, float)
-            gt3 = gt3[np.all(np.isfinite(gt3), -1)]
-            n = len(gt3) // 2
-            if n < 3:
+            gt = gt_layout_from_batch(batch, b)
+            if gt is None or len(gt[0]) < 3:
                 continue
-            gt_poly, gt_h = gt3[:n, :2], (float(gt3[n:, 2].mean()), float(gt3[:n, 2].mean()))
+            gt_poly, gt_h = gt
             lay = layouts[b]
+            if isinstance(lay, dict):
+                from ..postprocess.layout.layout import Layout
+                lay = Layout.from_dict(lay)
             self._add("layout_fail_rate", 0.0 if lay.ok else 1.0)
             if not lay.ok:
                 continue

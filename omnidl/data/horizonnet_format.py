@@ -1,0 +1,116 @@
+"""HorizonNet's ``label_cor`` format and a folder dataset (``root/img/*.png|jpg`` + ``root/label_cor/*.txt``).
+
+``label_cor``: one ``x y`` per line (0-based pixels, top-left origin: the centre of pixel column ``j`` is
+``x = j``, i.e. our continuous ``u = x + 0.5``), ceiling then floor of each wall-wall corner, corners
+in layout order (HorizonNet) or sorted by ``x`` (NonCentralIndoorDataset).
+
+The folder dataset is for *central* equirectangular panoramas: the 3D room is recovered from the
+corner pixels with an assumed camera height (HorizonNet's convention, 1.6 m; only the shape
+matters for the targets), and the boundary targets are computed through the camera from it.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..postprocess.layout.rays import R_WORLD_FROM_CAM
+from .layout_targets import boundary_targets, corner_heat
+
+
+def read_label_cor(path: str | Path) -> np.ndarray:
+    """``(2K, 2)`` float array of ``x y`` rows; a clear error names the file and the bad line."""
+    path = Path(path)
+    rows = []
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise ValueError(f"{path}:{i}: expected 'x y', got {line!r}")
+        try:
+            rows.append((float(parts[0]), float(parts[1])))
+        except ValueError as e:
+            raise ValueError(f"{path}:{i}: not numbers: {line!r}") from e
+    arr = np.asarray(rows, float).reshape(-1, 2)
+    if len(arr) % 2:
+        raise ValueError(f"{path}: {len(arr)} points; label_cor needs ceiling/floor pairs (an even count)")
+    return arr
+
+
+def write_label_cor(path: str | Path, cor: np.ndarray) -> None:
+    """Write ``(2K, 2)`` corners atomically (2 decimals)."""
+    from ..utils.io import atomic_write_text
+    atomic_write_text(path, "".join(f"{x:.2f} {y:.2f}\n" for x, y in np.asarray(cor, float)))
+
+
+def corners_from_label_cor(cor: np.ndarray, width: int, height: int, camera_height: float = 1.6) -> np.ndarray:
+    """Camera-frame 3D corners ``(K, 2, 3)`` of a *central* panorama's ``label_cor`` (ceiling/floor pairs).
+
+    Floor corners are put on the plane ``camera_height`` below the camera; the ceiling height is the
+    mean over corners of the height at which each ceiling pixel meets its floor corner's vertical.
+    """
+    c = np.asarray(cor, float).reshape(-1, 2, 2)
+    lon = 2 * math.pi * (c[..., 0] + 0.5) / width - math.pi
+    lat = math.pi / 2 - math.pi * (c[..., 1] + 0.5) / height
+    if np.any(lat[:, 1] >= 0) or np.any(lat[:, 0] <= 0):
+        raise ValueError("label_cor: every ceiling point must be above and every floor point below the horizon")
+    r = camera_height / np.tan(-lat[:, 1])                        # horizontal distance of the floor corner
+    h_c = float(np.mean(r * np.tan(lat[:, 0])))
+    lon_k = lon[:, 1]
+    xy = np.stack([r * np.sin(lon_k), r * np.cos(lon_k)], -1)
+    out = np.zeros((len(c), 2, 3))
+    out[:, :, :2] = xy[:, None]
+    out[:, 0, 2], out[:, 1, 2] = h_c, -camera_height
+    return out @ R_WORLD_FROM_CAM                                  # layout -> camera frame
+
+
+class HorizonNetFolderDataset(torch.utils.data.Dataset):
+    """``root/img/NAME.{png,jpg}`` + ``root/label_cor/NAME.txt`` -> layout samples (central panoramas).
+
+    Keys: ``image (3,H,W)``, ``boundary (2,W)`` rows, ``boundary_valid``, ``corner_heat (1,W)``,
+    ``corners_cam (K,2,3)`` (up to the assumed ``camera_height``), ``num_walls``, ``meta``.
+    """
+
+    def __init__(self, root: str | Path, width: int | None = None, height: int | None = None,
+                 camera_height: float = 1.6) -> None:
+        self.root = Path(root)
+        img_dir, lab_dir = self.root / "img", self.root / "label_cor"
+        if not img_dir.is_dir() or not lab_dir.is_dir():
+            raise FileNotFoundError(f"HorizonNet folder {self.root}: needs img/ and label_cor/ sub-folders")
+        self.items = []
+        for p in sorted(img_dir.iterdir()):
+            if p.suffix.lower() in (".png", ".jpg", ".jpeg"):
+                lab = lab_dir / f"{p.stem}.txt"
+                if not lab.exists():
+                    raise FileNotFoundError(f"{p}: no label file {lab}")
+                self.items.append((p, lab))
+        if not self.items:
+            raise FileNotFoundError(f"HorizonNet folder {self.root}: no images in {img_dir}")
+        self.width, self.height, self.camera_height = width, height, camera_height
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> dict:
+        import cv2
+        from ..cameras import Equirectangular
+        p, lab = self.items[i]
+        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise IOError(f"cannot read image {p}")
+        H0, W0 = bgr.shape[:2]
+        W, H = self.width or W0, self.height or H0
+        if (W, H) != (W0, H0):
+            bgr = cv2.resize(bgr, (W, H), interpolation=cv2.INTER_AREA)
+        img = torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float() / 255
+        cor = read_label_cor(lab) * np.array([W / W0, H / H0])
+        cc = corners_from_label_cor(cor, W, H, self.camera_height)
+        cam = Equirectangular(width=W, height=H)
+        rows, valid = boundary_targets(cc, cam)
+        return {"image": img, "boundary": rows, "boundary_valid": valid,
+                "corner_heat": corner_heat(cor[0::2, 0] + 0.5, W), "corners_cam": torch.from_numpy(cc).float(),
+                "num_walls": torch.tensor(len(cc)), "meta": {"name": p.stem, "file": str(p), "rig_radius": 0.0}}

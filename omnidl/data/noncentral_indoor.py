@@ -1,0 +1,162 @@
+"""Loader of the Non-Central Indoor Dataset (thesis §5.5; ``../shared/reference/layout.md`` §3).
+
+Layout of ``root``: ``img/NAME.png`` (1024x512 RGB), ``depth_coded/NAME.png`` (24-bit fixed point,
+``d = (R/255 + G/255^2 + B/255^3) * 10`` m, RGB on disk), ``EM_gt/NAME.png`` (edge map),
+``DataPython/{3D_gt,cam_pose,label_ang}/NAME.npy`` and ``DataPython/label_cor/NAME.txt``.
+
+Frame adapter (explicit). The dataset's azimuth *decreases* with the column: column ``x`` looks along
+``theta = pi - 2 pi (x + 0.5) / W`` in its right-handed z-up frame (x = camera heading, y = left),
+whereas omnidl's longitude ``lon = 2 pi (x + 0.5) / W - pi = -theta`` increases. Points map to omnidl's
+layout frame as ``(x_l, y_l, z_l) = (-y_d, x_d, z_d)`` (:func:`dataset_to_layout`), and to the OpenCV
+camera frame through ``R_WORLD_FROM_CAM^T``. The image columns need no flip.
+
+Sample keys (as the data engine, ``docs/synth.md``): ``image``, ``depth`` (range along the ray from the
+column's optical centre, as decoded; 0 = invalid), ``boundary (2,W)`` rows + ``boundary_valid`` (from
+``label_ang``, or ``EM_gt`` with ``boundary_source="edges"``, or the 3D corners through the camera with
+``"corners"``), ``corner_heat (1,W)`` from ``label_cor``, ``corners_cam (N,2,3)`` (``3D_gt - cam_pose``),
+``num_walls``, ``edges (1,H,W)``, ``meta`` (``name``, ``rig_radius``).
+``Rc``: the ``rc`` argument, else parsed from names like ``..._R06585`` (0.6585 m), else an error.
+"""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..postprocess.layout.rays import R_WORLD_FROM_CAM
+from .horizonnet_format import read_label_cor
+from .layout_targets import boundary_targets, corner_heat
+
+DEPTH_MAX = 10.0
+
+
+def decode_depth(rgb: np.ndarray, d_max: float = DEPTH_MAX) -> np.ndarray:
+    """24-bit fixed-point depth ``(H, W, 3)`` uint8 RGB -> metres ``(H, W)`` float32."""
+    c = rgb.astype(np.float64)
+    return ((c[..., 0] / 255 + c[..., 1] / 255 ** 2 + c[..., 2] / 255 ** 3) * d_max).astype(np.float32)
+
+
+def dataset_to_layout(points: np.ndarray) -> np.ndarray:
+    """Dataset frame ``(..., 3)`` (x heading, y left, z up; azimuth decreasing with the column) -> layout frame."""
+    p = np.asarray(points, float)
+    return np.stack([-p[..., 1], p[..., 0], p[..., 2]], -1)
+
+
+def rc_from_name(name: str) -> float | None:
+    """``'A23_R06585'`` -> 0.6585 (scaledLayout's naming); ``None`` if the name carries no radius."""
+    m = re.search(r"_R(\d{5})(?:\D|$)", name)
+    return int(m.group(1)) / 1e4 if m else None
+
+
+class NonCentralIndoorDataset(torch.utils.data.Dataset):
+    """Map-style dataset over ``root`` (see module docstring).
+
+    Args:
+        root: dataset folder.
+        names: sample names to use (default: every ``img/*.png``), e.g. a split list.
+        rc: rig radius in metres (default: from the file name, else error).
+        boundary_source: ``"label_ang"`` | ``"edges"`` (EM_gt, as scaledLayout) | ``"corners"``.
+        depth: also decode ``depth_coded``.
+    """
+
+    def __init__(self, root: str | Path, names: list[str] | None = None, rc: float | None = None,
+                 boundary_source: str = "label_ang", depth: bool = True) -> None:
+        self.root = Path(root)
+        if boundary_source not in ("label_ang", "edges", "corners"):
+            raise ValueError(f"boundary_source must be label_ang, edges or corners, got {boundary_source!r}")
+        img_dir = self.root / "img"
+        if not img_dir.is_dir():
+            raise FileNotFoundError(f"NonCentralIndoorDataset: {img_dir} not found")
+        self.names = list(names) if names is not None else sorted(p.stem for p in img_dir.glob("*.png"))
+        if not self.names:
+            raise FileNotFoundError(f"NonCentralIndoorDataset: no images in {img_dir}")
+        self.rc, self.boundary_source, self.depth = rc, boundary_source, depth
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def _rc(self, name: str) -> float:
+        rc = self.rc if self.rc is not None else rc_from_name(name)
+        if rc is None:
+            raise ValueError(f"NonCentralIndoorDataset: no rig radius for {name!r}: set rc= (data.rc) or use names "
+                             "with '_R<5 digits>' (e.g. _R10000 for 1 m)")
+        return float(rc)
+
+    def _file(self, *parts: str) -> Path:
+        p = self.root.joinpath(*parts)
+        if not p.exists():
+            raise FileNotFoundError(f"NonCentralIndoorDataset: missing file {p}")
+        return p
+
+    def __getitem__(self, i: int) -> dict:
+        import cv2
+        from ..cameras import build
+        name = self.names[i]
+        bgr = cv2.imread(str(self._file("img", f"{name}.png")), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise IOError(f"cannot read {self.root / 'img' / (name + '.png')}")
+        H, W = bgr.shape[:2]
+        rc = self._rc(name)
+        cam = build({"type": "noncentral_pano", "width": W, "height": H, "rc": rc})
+        out: dict[str, Any] = {"image": torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float() / 255}
+        if self.depth:
+            d = cv2.imread(str(self._file("depth_coded", f"{name}.png")), cv2.IMREAD_COLOR)
+            out["depth"] = torch.from_numpy(decode_depth(d[:, :, ::-1]))[None]       # BGR -> RGB before decoding
+        gt = np.load(self._file("DataPython", "3D_gt", f"{name}.npy")).astype(float)
+        pose = np.load(self._file("DataPython", "cam_pose", f"{name}.npy")).astype(float).reshape(1, 3)
+        if gt.ndim != 2 or gt.shape[1] != 3 or len(gt) % 2:
+            raise ValueError(f"{name}: 3D_gt must be (2N, 3) (N ceiling then N floor corners), got {gt.shape}")
+        n = len(gt) // 2
+        lay = dataset_to_layout(gt - pose)
+        corners = np.stack([lay[:n], lay[n:]], 1)                      # (N, 2, 3) layout frame
+        corners_cam = corners @ R_WORLD_FROM_CAM                        # -> OpenCV camera frame
+        out["corners_cam"] = torch.from_numpy(corners_cam).float()
+        out["num_walls"] = torch.tensor(n)
+        cor = read_label_cor(self._file("DataPython", "label_cor", f"{name}.txt"))
+        out["corner_heat"] = corner_heat(cor[0::2, 0] + 0.5, W)
+        em = cv2.imread(str(self._file("EM_gt", f"{name}.png")), cv2.IMREAD_GRAYSCALE)
+        out["edges"] = torch.from_numpy((em >= 250).astype(np.float32))[None]
+        if self.boundary_source == "label_ang":
+            ang = np.load(self._file("DataPython", "label_ang", f"{name}.npy")).astype(float)
+            out["boundary"], out["boundary_valid"] = self._from_label_ang(ang, W, H, name)
+        elif self.boundary_source == "edges":
+            out["boundary"], out["boundary_valid"] = self._from_edges(em >= 250)
+        else:
+            out["boundary"], out["boundary_valid"] = boundary_targets(corners_cam, cam)
+        out["meta"] = {"name": name, "rig_radius": rc, "camera": cam.to_config()}
+        return out
+
+    @staticmethod
+    def _from_label_ang(ang: np.ndarray, W: int, H: int, name: str):
+        if ang.ndim != 2 or ang.shape[0] != 3:
+            raise ValueError(f"{name}: label_ang must be (3, K) (azimuth, ceiling, floor elevations), got {ang.shape}")
+        lon = -ang[0]                                                    # the dataset's azimuth runs opposite
+        order = np.argsort(lon)
+        u = np.arange(W) + 0.5
+        lon_u = 2 * math.pi * u / W - math.pi
+        rows, valid = [], []
+        for k in (1, 2):
+            el = ang[k][order]
+            seen = el != 0                                               # 0 = boundary not seen
+            e = np.interp(lon_u, lon[order], el, period=2 * math.pi)
+            ok = np.interp(lon_u, lon[order], seen.astype(float), period=2 * math.pi) > 0.999
+            rows.append((math.pi / 2 - e) / math.pi * H)
+            valid.append(ok)
+        rows, valid = np.stack(rows), np.stack(valid)
+        return torch.from_numpy(np.where(valid, rows, -1.0)).float(), torch.from_numpy(valid)
+
+    @staticmethod
+    def _from_edges(edge: np.ndarray):
+        """scaledLayout's rule: first white pixel from the top (upper half) / last from the bottom (lower half)."""
+        H, W = edge.shape
+        up, lo = edge[: H // 2], edge[H // 2:]
+        has_c, has_f = up.any(0), lo.any(0)
+        c = up.argmax(0) + 0.5
+        f = H // 2 + (lo.shape[0] - 1 - lo[::-1].argmax(0)) + 0.5
+        valid = np.stack([has_c, has_f])
+        rows = np.where(valid, np.stack([c, f]), -1.0)
+        return torch.from_numpy(rows).float(), torch.from_numpy(valid)
