@@ -7,7 +7,8 @@ prediction is then clamped to ``[0, max_depth]``):
 * ``mre``  = mean ``|p - g| / g`` (mean relative error, a.k.a. MARE / AbsRel)
 * ``mae``  = mean ``|p - g|``
 * ``rmse`` = ``sqrt(mean (p - g)^2)`` (a mean of per-image RMSEs, not a global RMSE)
-* ``rmse_log`` = ``sqrt(mean (ln p - ln g)^2)`` on the pixels where also ``p > min_depth``
+* ``rmse_log`` = ``sqrt(mean (ln p - ln g)^2)`` on the pixels where also ``p > min_depth`` (an image
+  without any such pixel uses ``p`` clamped to ``min_depth`` instead: a large, finite value)
 * ``delta1/2/3`` = fraction of pixels with ``max(p/g, g/p) < 1.25^n``
 
 :func:`depth_errors` is the functional core (one image); :class:`DepthMetrics` follows the metrics
@@ -43,7 +44,10 @@ def depth_errors(pred: Tensor, gt: Tensor, min_depth: float = 1e-7, max_depth: f
     out = {"mre": (err.abs() / g).mean().item(), "mae": err.abs().mean().item(),
            "rmse": err.pow(2).mean().sqrt().item()}
     lm = p > min_depth
-    out["rmse_log"] = (p[lm].log() - g[lm].log()).pow(2).mean().sqrt().item() if lm.any() else math.nan
+    if lm.any():
+        out["rmse_log"] = (p[lm].log() - g[lm].log()).pow(2).mean().sqrt().item()
+    else:   # no positive prediction at all: clamp to min_depth (large but finite, never NaN)
+        out["rmse_log"] = (p.clamp_min(min_depth).log() - g.log()).pow(2).mean().sqrt().item()
     ratio = torch.maximum(p / g, g / p.clamp_min(torch.finfo(p.dtype).tiny))
     for n in (1, 2, 3):
         out[f"delta{n}"] = (ratio < 1.25 ** n).double().mean().item()

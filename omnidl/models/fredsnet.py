@@ -152,6 +152,8 @@ class FreDSNet(nn.Module):
         semantic_bn_relu: end the semantic branch with BN + ReLU as the public model (for converted
             official weights); default plain logits.
         outputs: which heads to build/run (``("depth", "semantic")``, or one of them).
+        depth_bias_init: initial bias (metres) of the depth output conv, so that the final ReLU starts
+            active on most pixels (a dead ReLU output never learns); the public code uses the default init.
     """
 
     stride = 32
@@ -161,7 +163,7 @@ class FreDSNet(nn.Module):
                  equi_parts: Sequence[str] = ("fourier", "wconv"), fourier_padding: str = "zeros",
                  encoder_dropout: float = 0.4, head_width: int = HEAD_WIDTH, fft_norm: str = "backward",
                  spectrum_layout: str = "width", semantic_bn_relu: bool = False,
-                 outputs: Sequence[str] = ("depth", "semantic")) -> None:
+                 outputs: Sequence[str] = ("depth", "semantic"), depth_bias_init: float = 1.0) -> None:
         super().__init__()
         if conv not in ("std", "equi"):
             raise ValueError(f"FreDSNet: conv must be 'std' or 'equi', got {conv!r}")
@@ -207,6 +209,8 @@ class FreDSNet(nn.Module):
                                         out_activation="relu" if semantic_bn_relu else "none",
                                         out_norm=semantic_bn_relu, wconv_kwargs=hc,
                                         out_camera=hc["camera"]) if "semantic" in outputs else None
+        if self.depth_head is not None:
+            nn.init.constant_(self.depth_head.out.conv.bias, float(depth_bias_init))
 
     def check_input(self, x: Tensor) -> None:
         """Raise a ``ValueError`` unless ``x`` is ``(B, 3, H, W)`` with ``H, W`` multiples of 32."""

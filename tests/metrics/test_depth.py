@@ -57,3 +57,11 @@ def test_shape_mismatch_and_prefix():
     metric = DepthMetrics(prefix="depth/")
     metric.update({"depth": torch.ones(1, 2, 2)}, {"depth": torch.ones(1, 2, 2)})
     assert metric.compute()["depth/delta1"] == 1.0
+
+
+def test_all_zero_prediction_gives_finite_metrics():
+    g = torch.tensor([1.0, 2.0, 4.0])
+    m = depth_errors(torch.zeros(3), g)
+    assert all(math.isfinite(v) for v in m.values())
+    assert m["rmse_log"] == pytest.approx(torch.sqrt(((math.log(1e-7) - g.log()) ** 2).mean()).item())
+    assert m["mre"] == pytest.approx(1.0) and m["delta3"] == 0.0

@@ -32,6 +32,7 @@ def test_outputs_and_ranges():
     assert out["depth"].shape == (1, 1, 32, 96) and (out["depth"] >= 0).all()
     assert out["semantic"].shape == (1, 14, 32, 96)
     assert out["semantic"].min() < 0          # plain logits (no BN+ReLU unless semantic_bn_relu)
+    torch.testing.assert_close(model.depth_head.out.conv.bias, torch.ones(1))   # ReLU output starts active
 
 
 @pytest.mark.parametrize("size", [(64, 100), (48, 64), (64, 64 + 16)])
