@@ -126,7 +126,7 @@ def test_boundaries_match_projected_layout_lines(name, room):
     assert out["boundary_valid"].all()
     assert np.isfinite(ref).all()
     err = np.abs(got - ref)
-    assert err.max() < 0.5, err.max()
+    assert err.max() < 0.02, err.max()   # acceptance: < 0.5 px; measured ~1e-3 px (reference sampling)
     assert np.median(err) < 0.05
     # corners project where the rendered corner columns are: visible corner u equals a wall-wall change
     uv = out["corners_uv"][: sc.num_walls].numpy()
