@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from torch.utils.data import DataLoader
 
 from omnidl.data.collate import collate_samples
@@ -131,10 +131,13 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     (out_dir / "postprocess.jsonl").unlink(missing_ok=True)  # appended per batch below
     seed_everything(int(tc.seed), int(tc.num_threads), False)
     device = pick_device(str(tc.device))
-    model = build_model(cfg).to(device).eval()
     ckpt_path = cfg.get("checkpoint")
-    if ckpt_path:
-        load_model_weights(model, load_checkpoint(ckpt_path, map_location=device), ckpt_path)
+    ckpt = load_checkpoint(ckpt_path, map_location=device) if ckpt_path else None
+    if ckpt is not None:
+        cfg = _fill_from_checkpoint(cfg, ckpt)
+    model = build_model(cfg).to(device).eval()
+    if ckpt is not None:
+        load_model_weights(model, ckpt, ckpt_path)
         log.info("loaded %s", ckpt_path)
     else:
         log.warning("no checkpoint given (checkpoint=PATH): evaluating the randomly initialised model")
@@ -239,6 +242,23 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     text = "\n".join(f"  {k:>12s}: {v:.4f}" for k, v in mean.items()) or "  (no labels: predictions only)"
     print(f"evaluated {len(records)} images ({ckpt_path or 'untrained model'}):\n{text}\noutputs in {out_dir}")
     return summary
+
+
+def _fill_from_checkpoint(cfg: DictConfig, ckpt: dict[str, Any]) -> DictConfig:
+    """``python evaluate.py checkpoint=PATH`` without ``model=...``: take the model (and the camera, metrics and
+    data when those are not chosen either) from the training config stored in the checkpoint."""
+    saved = ckpt.get("config")
+    if not isinstance(saved, dict) or cfg.get("model") is not None:
+        return cfg
+    cfg = copy.deepcopy(cfg)
+    taken = []
+    with open_dict(cfg):
+        for key in ("model", "camera", "metrics", "data"):
+            if cfg.get(key) is None and saved.get(key) is not None:
+                cfg[key] = OmegaConf.create(saved[key])
+                taken.append(key)
+    log.info("no model=... given: using %s from the checkpoint's training config", ", ".join(taken))
+    return cfg
 
 
 def _rotate_batch(batch: dict[str, Any], R: torch.Tensor) -> dict[str, Any]:

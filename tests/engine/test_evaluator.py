@@ -89,3 +89,11 @@ def test_bad_checkpoint_is_a_clear_error(cfg_factory, tmp_path):
     cfg = cfg_factory([f"checkpoint={tmp_path / 'x.pt'}"], config_name="evaluate", sub="bad")
     with pytest.raises(RuntimeError, match="does not fit the model"):
         evaluate(cfg)
+
+
+def test_model_and_data_from_the_checkpoint_config(cfg_factory, trained):
+    cfg = cfg_factory([f"checkpoint={trained}", "eval.save_images=0", "eval.save_pointclouds=0"],
+                      config_name="evaluate", sub="fromckpt", standin=False)
+    assert cfg.model is None
+    res = evaluate(cfg)
+    assert res["num_images"] == 3 and set(res["metrics"]) == {"mae", "acc"}
