@@ -225,3 +225,27 @@ def test_same_inputs_give_bit_identical_renders():
     for k in a:
         if k != "meta":
             assert torch.equal(a[k], b[k]), k
+
+
+def _config_cameras():
+    from omnidl.synth.cameras import CAMERA_CONFIG_DIR
+    return sorted(p.stem for p in CAMERA_CONFIG_DIR.glob("*.yaml"))
+
+
+@pytest.mark.parametrize("name", _config_cameras())
+def test_every_configured_camera_renders_consistent_depth(name):
+    from shapely.geometry import Point, Polygon
+    from omnidl.synth.cameras import resolve_camera
+    cam = resolve_camera(name, 32, 32)
+    sc = sample_room(4)
+    pose = place_camera(sc, cam, 4)
+    out = render(sc, cam, pose)
+    valid = out["valid"].numpy().reshape(-1)
+    assert valid.mean() > 0.3
+    rays = cam.unproject_grid(dtype=torch.float64)
+    assert np.array_equal(valid, rays.valid.numpy().reshape(-1))
+    pts = rays.at(out["depth"][0].double()).reshape(-1, 3).numpy() @ pose[:3, :3].T + pose[:3, 3]
+    pts = pts[valid]
+    assert pts[:, 2].min() > -1e-4 and pts[:, 2].max() < sc.height + 1e-4
+    room = Polygon(sc.polygon).buffer(1e-4)
+    assert all(room.contains(Point(p[:2])) for p in pts)
