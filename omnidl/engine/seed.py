@@ -7,9 +7,14 @@ from typing import Any
 import numpy as np
 import torch
 
+#: torch's intra-op thread count when omnidl was imported: ``num_threads=0`` restores it, so a job of a
+#: multirun does not inherit the previous job's setting
+_INITIAL_THREADS = torch.get_num_threads()
+
 
 def seed_everything(seed: int, num_threads: int = 0, deterministic: bool = False) -> None:
-    """Reset Python, NumPy and torch RNGs (and CUDA's) to ``seed``; set torch's intra-op thread count.
+    """Reset Python, NumPy and torch RNGs (and CUDA's) to ``seed``; set torch's intra-op thread count
+    (``num_threads=0``: the count torch had when this module was imported).
 
     Called at the start of every job: Hydra's basic multirun launcher runs jobs in one process,
     so nothing may leak from the previous job.
@@ -19,8 +24,7 @@ def seed_everything(seed: int, num_threads: int = 0, deterministic: bool = False
     torch.manual_seed(seed)
     if torch.cuda.is_available():
         torch.cuda.manual_seed_all(seed)
-    if num_threads > 0:
-        torch.set_num_threads(num_threads)
+    torch.set_num_threads(num_threads if num_threads > 0 else _INITIAL_THREADS)
     torch.use_deterministic_algorithms(deterministic, warn_only=True)
 
 
