@@ -43,3 +43,20 @@ def test_cli_over_a_folder_with_bad_frames(tmp_path):
     assert main([str(frames), "--out", str(out), "--assume-upright", "--reference", "nope.png"]) == 2
     assert main([str(tmp_path / "none"), "--out", str(out), "--assume-upright"]) == 2
     assert main([str(frames), "--out", str(out)]) == 2  # neither checkpoint nor --assume-upright
+
+
+def test_load_holinet_from_an_engine_checkpoint(tmp_path):
+    from omnidl.engine.checkpoint import save_checkpoint
+    from omnidl.models import create_model
+    from omnidl.postprocess.gyroscope.cli import load_holinet
+    from omnidl.postprocess.gyroscope.pipeline import model_horizon_fn
+    kw = dict(backbone="resnet18", width=0.125, conv="std")
+    m = create_model("holinet", **kw)
+    cfg = {"camera": {"type": "equirect", "width": 64, "height": 32},
+           "model": {"_target_": "omnidl.models.create_model", "name": "holinet", **kw},
+           "data": {"height": 32}}
+    save_checkpoint(tmp_path / "best.pt", {"model": m.state_dict(), "config": cfg})
+    m2, h = load_holinet(tmp_path / "best.pt")
+    assert h == 32
+    hl, vp = model_horizon_fn(m2, h)(torch.rand(2, 3, 64, 128))
+    assert hl.shape == vp.shape == (2, 1, 16, 32) and (hl >= 0).all() and (hl <= 1).all()
