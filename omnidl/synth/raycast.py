@@ -26,8 +26,37 @@ class RoomHit(NamedTuple):
     s: Tensor       # (P,) metres along the wall from its first vertex (WALL hits)
 
 
-def cast_room(origin: Tensor, direction: Tensor, polygon: Tensor, height: float) -> RoomHit:
-    """First hit of rays with the room prism (floor polygon ``(N, 2)`` CCW, ceiling at ``height``)."""
+def _walls_2d(ox: Tensor, oy: Tensor, dx: Tensor, dy: Tensor, polygon: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Nearest wall crossing of 2D rays (top view): range in units of ``|(dx, dy)|``, wall index, metres along it.
+
+    ``ox, oy``: ``(R,)`` or ``(1,)``; ``dx, dy``: ``(R,)``. A ray leaving a counter-clockwise room from the
+    inside crosses a wall from its front (``d . inward < 0``, i.e. ``cross(d, e) > 0``), which lets the
+    segment test run without divisions: ``0 <= cross(a - o, d) <= cross(d, e)``.
+    """
+    a = polygon                                     # (N, 2)
+    e = torch.roll(polygon, -1, 0) - polygon        # (N, 2)
+    length = e.norm(dim=-1)
+    rx = a[:, 0] - ox.reshape(-1, 1)                # (R or 1, N)
+    ry = a[:, 1] - oy.reshape(-1, 1)
+    dxx, dyy = dx.reshape(-1, 1), dy.reshape(-1, 1)
+    denom = dxx * e[:, 1] - dyy * e[:, 0]           # (R, N) = cross(d, e)
+    num_s = rx * dyy - ry * dxx                     # cross(a - o, d)
+    front = (denom > 1e-12) & (num_s >= 0) & (num_s <= denom)
+    t = (rx * e[:, 1] - ry * e[:, 0]) / torch.where(front, denom, torch.ones_like(denom))
+    t = t.masked_fill_(~front | (t <= _EPS), math.inf)
+    t_wall, wall = t.min(dim=1)
+    s_hit = (num_s.gather(1, wall[:, None])[:, 0] / denom.gather(1, wall[:, None])[:, 0].clamp_min(1e-12))
+    return t_wall, wall, s_hit.clamp(0, 1) * length[wall]
+
+
+def cast_room(origin: Tensor, direction: Tensor, polygon: Tensor, height: float,
+              grid: tuple[int, int] | None = None) -> RoomHit:
+    """First hit of rays with the room prism (floor polygon ``(N, 2)`` CCW, ceiling at ``height``).
+
+    With ``grid = (H, W)`` (rays in image order) and rays whose horizontal direction and origin are the
+    same down every column (upright panoramas, central or non-central), the wall test runs once per
+    column and the range is scaled by ``1 / |d_xy|`` per pixel: exact, and ``H`` times less work.
+    """
     ox, oy, oz = origin[..., 0], origin[..., 1], origin[..., 2]
     dx, dy, dz = direction[..., 0], direction[..., 1], direction[..., 2]
     inf = torch.full_like(dz, math.inf)
@@ -40,23 +69,17 @@ def cast_room(origin: Tensor, direction: Tensor, polygon: Tensor, height: float)
     kind_plane = torch.where(t_ceil <= t_floor, torch.full_like(dz, CEILING, dtype=torch.int64),
                              torch.full_like(dz, FLOOR, dtype=torch.int64))
 
-    a = polygon                                     # (N, 2)
-    e = torch.roll(polygon, -1, 0) - polygon        # (N, 2)
-    length = e.norm(dim=-1)
-    rx = a[:, 0] - ox.reshape(-1, 1)                # (P or 1, N)
-    ry = a[:, 1] - oy.reshape(-1, 1)
-    dxx, dyy = dx.reshape(-1, 1), dy.reshape(-1, 1)
-    denom = dxx * e[:, 1] - dyy * e[:, 0]           # (P, N)
-    bad = denom.abs() <= 1e-12
-    denom.masked_fill_(bad, 1.0)
-    t = (rx * e[:, 1] - ry * e[:, 0]) / denom       # (P, N) (broadcast from (1, N) for central rays)
-    s = (rx * dyy - ry * dxx).div_(denom)
-    miss = bad | (t <= _EPS) | (s < 0) | (s > 1)
-    t = t.masked_fill(miss, math.inf)
-    t_wall, wall = t.min(dim=1)
-    s_hit = s.gather(1, wall[:, None])[:, 0].clamp(0, 1) * length[wall]
-    t_wall, s_hit = t_wall.reshape(dz.shape), s_hit.reshape(dz.shape)
-    wall = wall.reshape(dz.shape)
+    col = _column_rays(origin, direction, grid)
+    if col is not None:
+        (cox, coy, cdx, cdy), hnorm, W = col
+        t2, wall, s_hit = _walls_2d(cox, coy, cdx, cdy, polygon)       # per column, unit horizontal direction
+        H = dz.numel() // W
+        t_wall = (t2[None] / hnorm.reshape(H, W)).reshape(-1)
+        wall = wall.repeat(H)
+        s_hit = s_hit.repeat(H)
+    else:
+        t_wall, wall, s_hit = _walls_2d(ox, oy, dx, dy, polygon)
+        t_wall, s_hit, wall = t_wall.reshape(dz.shape), s_hit.reshape(dz.shape), wall.reshape(dz.shape)
 
     is_wall = t_wall < t_plane
     t_out = torch.where(is_wall, t_wall, t_plane)
@@ -64,6 +87,30 @@ def cast_room(origin: Tensor, direction: Tensor, polygon: Tensor, height: float)
     kind = torch.where(torch.isfinite(t_out), kind, torch.zeros_like(kind))
     wall = torch.where(is_wall, wall, torch.full_like(wall, -1))
     return RoomHit(t_out, kind, wall, torch.where(is_wall, s_hit, torch.zeros_like(s_hit)))
+
+
+def _column_rays(origin: Tensor, direction: Tensor, grid):
+    """Per-column horizontal rays if every column shares one horizontal direction and origin, else None."""
+    if grid is None:
+        return None
+    H, W = grid
+    if direction.shape[0] != H * W or H < 2:
+        return None
+    d = direction.reshape(H, W, 3)
+    hnorm = torch.linalg.vector_norm(d[..., :2], dim=-1)                  # (H, W)
+    if bool((hnorm <= 1e-6).any()):
+        return None
+    ref = d[H // 2, :, :2] / hnorm[H // 2, :, None]                      # the most accurate row
+    if float((d[..., :2] - ref * hnorm[..., None]).abs().amax()) > 4e-6:  # absolute direction error
+        return None
+    if origin.shape[0] == 1:
+        ox, oy = origin[:, 0], origin[:, 1]
+    else:
+        o = origin.reshape(H, W, 3)[..., :2]
+        if float((o - o[H // 2]).abs().amax()) > 1e-6:
+            return None
+        ox, oy = o[H // 2, :, 0], o[H // 2, :, 1]
+    return (ox, oy, ref[:, 0], ref[:, 1]), hnorm, W
 
 
 def _slab(o: Tensor, d: Tensor, boxes: Tensor) -> Tensor:
@@ -122,13 +169,22 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
         rad = torch.cat([(hi_xy - lo_xy) / 2, ((hi_z - lo_z) / 2)[None]]).norm()
         spheres.append((mid, float(rad)))
     mids = torch.stack([m for m, _ in spheres]).to(direction)
-    v = mids - centre.to(direction)
-    dist = v.norm(dim=-1)
-    rads = torch.tensor([r for _, r in spheres], dtype=direction.dtype, device=direction.device) + rig_radius + 1e-3
-    always = dist <= rads
-    cos_thr = torch.sqrt((1 - (rads / dist.clamp_min(1e-9)) ** 2).clamp_min(0.0)) - 1e-4
-    cosang = direction @ (v / dist.clamp_min(1e-9)[:, None]).T          # (P, G)
-    cand_all = cosang >= cos_thr[None]
+    radius = torch.tensor([r for _, r in spheres], dtype=direction.dtype, device=direction.device)
+    if central or rig_radius <= 0:
+        # cone from the camera centre tangent to each bounding sphere (exact for central rays)
+        v = mids - centre.to(direction)
+        dist = v.norm(dim=-1)
+        rads = radius + rig_radius + 1e-3
+        always = dist <= rads
+        cos_thr = torch.sqrt((1 - (rads / dist.clamp_min(1e-9)) ** 2).clamp_min(0.0)) - 1e-4
+        cand_all = direction @ (v / dist.clamp_min(1e-9)[:, None]).T >= cos_thr[None]      # (P, G)
+    else:
+        # each ray's own line against each sphere: |c - o|^2 - ((c - o).d)^2 <= r^2 and (c - o).d >= -r
+        r = radius + 1e-2
+        proj = direction @ mids.T - (origin * direction).sum(-1, keepdim=True)            # (P, G)
+        dist2 = (mids * mids).sum(-1) - 2 * origin @ mids.T + (origin * origin).sum(-1, keepdim=True)
+        cand_all = (dist2 - proj * proj <= r * r) & (proj >= -r)
+        always = torch.zeros(len(groups), dtype=torch.bool)
     for gi, g in enumerate(groups):
         if bool(always[gi]):
             idx = torch.arange(direction.shape[0], device=direction.device)

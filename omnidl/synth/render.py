@@ -95,7 +95,7 @@ def render(scene: Scene, camera, pose: np.ndarray, layout: bool = True, dtype: t
 
     n, n_dec = scene.num_walls, len(scene.decals)
     poly = torch.as_tensor(scene.polygon, dtype=dtype, device=device)
-    room = cast_room(o, d, poly, scene.height)
+    room = cast_room(o, d, poly, scene.height, grid=(H, W))
     boxes = torch.as_tensor(scene.boxes, dtype=dtype, device=device)
     groups = _box_groups(scene.boxes)
     t, box_id = cast_boxes(o, d, boxes, groups, room.t, centre, rig)
