@@ -228,8 +228,9 @@ class LayoutMetrics:
     """Engine metric: ``reset() / update(outputs, batch) / compute()``.
 
     * Map metrics (always): from ``outputs["boundary"] (B, 2, W)`` and ``outputs["corner"] (B, 1, W)``
-      logits against ``batch["boundary"]``/``batch["corner"]`` targets (Table 5.1: P/R/Acc/IoU of the
-      edge and corner maps, plus the mean absolute boundary error in pixels).
+      logits against ``batch["boundary"]`` (pixel rows, or radians with ``target_units="radians"``;
+      ``boundary_valid`` masks) and ``batch["corner_heat"]``/``batch["corner"]`` targets (Table 5.1:
+      P/R/Acc/IoU of the edge and corner maps, plus the mean absolute boundary error in pixels).
     * Layout metrics (when ``solver`` is set and the batch has ground-truth corners: the data engine's
       ``corners_cam``/``num_walls`` or ``corners_3d``): the pipeline runs on the predictions
       (``outputs["layout"]`` from a hook is used if present; ``camera_height`` selects the central
@@ -240,7 +241,7 @@ class LayoutMetrics:
 
     def __init__(self, solver: str | None = "atlanta", corner_threshold: float = 0.5, edge_thickness: float = 1.0,
                  corner_radius: float = 3.0, rc: float | None = None, camera: Any = None,
-                 camera_height: float | None = None):
+                 camera_height: float | None = None, central: bool = False, target_units: str = "rows"):
         self.solver = solver
         self.corner_threshold = corner_threshold
         self.edge_thickness = edge_thickness
@@ -248,6 +249,10 @@ class LayoutMetrics:
         self.rc = rc
         self.camera = camera
         self.camera_height = camera_height
+        self.central = bool(central) or camera_height is not None
+        if target_units not in ("rows", "radians"):
+            raise ValueError(f"target_units must be 'rows' or 'radians', got {target_units!r}")
+        self.target_units = target_units
         self.reset()
 
     def reset(self) -> None:
@@ -268,9 +273,16 @@ class LayoutMetrics:
         prob = torch.sigmoid(outputs["corner"].detach().float()).reshape(B, W)
         if "boundary" in batch:
             gt_b = batch["boundary"].to(bon.device).float()
-            self._add("boundary_px", ((bon - gt_b).abs().mean().item()) * H / math.pi)
+            if self.target_units == "rows":
+                gt_b = (gt_b / H - 0.5) * math.pi
+            valid = batch.get("boundary_valid")
+            valid = torch.ones_like(gt_b, dtype=torch.bool) if valid is None else valid.to(bon.device).bool()
+            if valid.any():
+                self._add("boundary_px", ((bon - gt_b).abs()[valid].mean().item()) * H / math.pi)
+            gt_b = torch.where(valid, gt_b, bon)
             pc = corner_columns_from_prob(prob, self.corner_threshold)
-            gc = corner_columns_from_prob(batch["corner"].reshape(B, W).float(), 0.9) if "corner" in batch else pc
+            heat = batch.get("corner_heat", batch.get("corner"))
+            gc = corner_columns_from_prob(heat.reshape(B, W).float(), 0.9) if heat is not None else pc
             ps = binary_scores(edge_map(bon, pc, H, self.edge_thickness), edge_map(gt_b, gc, H, self.edge_thickness))
             cs = binary_scores(corner_map(bon, pc, H, self.corner_radius), corner_map(gt_b, gc, H, self.corner_radius))
             for k, v in ps.items():
@@ -283,7 +295,7 @@ class LayoutMetrics:
         layouts = outputs.get("layout")
         if layouts is None:
             layouts = layouts_from_outputs(outputs, batch, world=self.solver, rc=self.rc, camera=self.camera,
-                                           camera_height=self.camera_height, central=self.camera_height is not None)
+                                           camera_height=self.camera_height, central=self.central)
         for b in range(B):
             gt = gt_layout_from_batch(batch, b)
             if gt is None or len(gt[0]) < 3:

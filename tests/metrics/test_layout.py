@@ -82,7 +82,7 @@ def test_layout_metrics_object_runs_pipeline_on_outputs():
     bon = torch.from_numpy(np.stack([-lat_c, -lat_f]))[None].float()
     logit = torch.logit(torch.from_numpy(prob).clamp(1e-4, 1 - 1e-4))[None, None].float()
     corners3d = torch.from_numpy(room.corners_3d)[None]
-    m = LayoutMetrics(solver="manhattan", rc=1.0)
+    m = LayoutMetrics(solver="manhattan", rc=1.0, target_units="radians")
     batch = {"image": torch.zeros(1, 3, 128, 256), "boundary": bon, "corner": torch.from_numpy(prob)[None, None].float(),
              "corners_3d": corners3d}
     m.update({"boundary": bon, "corner": logit}, batch)
