@@ -142,11 +142,14 @@ def layout_ground_truth(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor
             dist = torch.minimum(dist, W - dist)
         heat[0] = (CORNER_BASE ** dist.min(1).values).to(torch.float32)
 
-    # structural edge map: boundary rows, wall-wall changes and (non-panoramic cameras) vertical changes
+    # structural edge map (EM_gt): the pixel holding each column's ceiling/floor boundary, wall-wall edges,
+    # and for cameras that do not wrap (no single boundary per column) every vertical class change
     key = kind_map.cpu() * 64 + torch.where(kind_map.cpu() == WALL, wall_map.cpu().clamp_min(0), 0)
     edges = torch.zeros(H, W)
     right = torch.roll(key, -1, 1) if camera.wraps_horizontally else torch.cat([key[:, 1:], key[:, -1:]], 1)
-    edges[(key != right) & (key > 0) & (right > 0)] = 1.0
+    walls = kind_map.cpu() == WALL
+    right_wall = torch.roll(walls, -1, 1) if camera.wraps_horizontally else torch.cat([walls[:, 1:], walls[:, -1:]], 1)
+    edges[(key != right) & walls & right_wall] = 1.0     # wall-wall (vertical) edges
     rows = boundary.floor().long().clamp(0, H - 1)
     colsi = torch.arange(W).repeat(2, 1)
     edges[rows[b_valid], colsi[b_valid]] = 1.0

@@ -249,3 +249,18 @@ def test_every_configured_camera_renders_consistent_depth(name):
     assert pts[:, 2].min() > -1e-4 and pts[:, 2].max() < sc.height + 1e-4
     room = Polygon(sc.polygon).buffer(1e-4)
     assert all(room.contains(Point(p[:2])) for p in pts)
+
+
+def test_edge_map_reads_back_as_the_boundaries():
+    """scaledLayout's reading of EM_gt: first edge pixel from the top (upper half) / from the bottom (lower half)."""
+    cam = build({"type": "noncentral_pano", "width": 128, "height": 64, "rc": 0.5})
+    sc = sample_room(9)
+    out = render(sc, cam, place_camera(sc, cam, 9))
+    em = out["edges"][0].numpy() > 0
+    H = em.shape[0]
+    b, ok = out["boundary"].numpy(), out["boundary_valid"].numpy()
+    top = em[: H // 2].argmax(0)
+    bottom = H - 1 - em[::-1][: H // 2].argmax(0)
+    assert ok.all()
+    assert np.array_equal(top, np.floor(b[0]).astype(int))
+    assert np.array_equal(bottom, np.floor(b[1]).astype(int))
