@@ -18,6 +18,7 @@ every RNG and the sampler position, so the loss curve continues exactly as if ne
 from __future__ import annotations
 
 import json
+import os
 import logging
 import math
 import time
@@ -148,7 +149,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     tc = cfg.trainer
     out_dir = Path(output_dir(cfg))
     seed_everything(int(tc.seed), int(tc.num_threads), bool(tc.deterministic))
-    device = pick_device(str(tc.device), int(__import__("os").environ.get("LOCAL_RANK", 0)))
+    device = pick_device(str(tc.device), int(os.environ.get("LOCAL_RANK", 0)))
     dist = ddp.setup(device, str(tc.distributed_backend))
     main = dist.is_main
     if device.type == "cuda":
