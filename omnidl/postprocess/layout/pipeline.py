@@ -372,8 +372,9 @@ def _short_wall_line(rays: ColumnRays, c: np.ndarray, h_c: float, h_f: float):
     if len(P) < 2:
         return math.nan, math.nan
     mu = P.mean(0)
-    _, _, Vt = np.linalg.svd(P - mu)
-    u = Vt[0]
+    Q = P - mu
+    _, V = np.linalg.eigh(Q.T @ Q)                   # 2x2 scatter: principal direction = largest eigenvector
+    u = V[:, 1]
     th = math.atan2(u[1], u[0])
     n = np.array([-u[1], u[0]])
     d = float(n @ mu)
