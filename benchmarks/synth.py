@@ -41,7 +41,7 @@ class _BruteForce:
 
         def brute(origin, direction, boxes, groups, t_best, centre, rig_radius):
             single = [torch.tensor([i]) for g in groups for i in g.tolist()]
-            return self.orig(origin, direction, boxes, single, t_best, centre, 1e9)
+            return self.orig(origin, direction, boxes, single, t_best, centre, rig_radius, cull=False)
 
         import sys
         r = sys.modules["omnidl.synth.render"]   # the module (omnidl.synth.render is the function)

@@ -134,7 +134,7 @@ def _slab(o: Tensor, d: Tensor, boxes: Tensor) -> Tensor:
 
 
 def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Tensor], t_best: Tensor,
-               centre: Tensor, rig_radius: float) -> tuple[Tensor, Tensor]:
+               centre: Tensor, rig_radius: float, cull: bool = True) -> tuple[Tensor, Tensor]:
     """Nearest box hits closer than ``t_best``.
 
     Args:
@@ -142,6 +142,7 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
         groups: box indices per object (culled together by one bounding sphere).
         t_best: ``(P,)`` current nearest range (e.g. the room hit); centre: ``(3,)`` camera centre;
         rig_radius: largest distance of a ray origin from ``centre``.
+        cull: skip rays that miss an object's bounding sphere (``False``: test every ray, for benchmarks).
     Returns:
         ``t (P,)`` updated nearest range and ``box (P,)`` int64 index of the hit box (``-1`` = none).
     """
@@ -170,7 +171,10 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
         spheres.append((mid, float(rad)))
     mids = torch.stack([m for m, _ in spheres]).to(direction)
     radius = torch.tensor([r for _, r in spheres], dtype=direction.dtype, device=direction.device)
-    if central or rig_radius <= 0:
+    if not cull:
+        cand_all = None
+        always = torch.ones(len(groups), dtype=torch.bool)
+    elif central or rig_radius <= 0:
         # cone from the camera centre tangent to each bounding sphere (exact for central rays)
         v = mids - centre.to(direction)
         dist = v.norm(dim=-1)
