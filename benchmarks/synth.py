@@ -58,12 +58,13 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--reps", type=int, default=7)
     p.add_argument("--seeds", type=int, nargs="+", default=[3, 11, 42])
+    p.add_argument("--cameras", nargs="+", default=["equirect", "noncentral_pano"])
     p.add_argument("--profile", action="store_true")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} threads, median of {args.reps}")
     targets = {(1024, 512): 0.5, (256, 128): 0.05}
-    for cam_type in ("equirect", "noncentral_pano"):
+    for cam_type in args.cameras:
         for (w, h), target in targets.items():
             cfg = {"type": cam_type, "width": w, "height": h}
             if cam_type == "noncentral_pano":
