@@ -264,3 +264,12 @@ def test_edge_map_reads_back_as_the_boundaries():
     assert ok.all()
     assert np.array_equal(top, np.floor(b[0]).astype(int))
     assert np.array_equal(bottom, np.floor(b[1]).astype(int))
+
+
+def test_shadows_only_darken():
+    cam = build(CAMERAS["equirect"])
+    sc = sample_room(42)
+    pose = place_camera(sc, cam, 42)
+    lit, shadowed = render(sc, cam, pose, layout=False), render(sc, cam, pose, layout=False, shadows=True)
+    assert torch.equal(lit["depth"], shadowed["depth"]) and torch.equal(lit["semantic"], shadowed["semantic"])
+    assert (shadowed["image"] <= lit["image"] + 1e-6).all() and (shadowed["image"] < lit["image"] - 1e-3).any()
