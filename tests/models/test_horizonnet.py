@@ -8,8 +8,7 @@ from omnidl.models import create_model
 from omnidl.models.horizonnet import BIAS_INIT, HorizonNet, convert_official_state_dict, load_official_checkpoint
 
 
-@pytest.mark.parametrize("hw", [(64, 128), (128, 256), (64, 256)])
-@pytest.mark.parametrize("rnn", [True, False])
+@pytest.mark.parametrize("hw,rnn", [((64, 128), True), ((128, 256), False), ((32, 192), True)])
 def test_output_shapes_any_size(hw, rnn):
     torch.manual_seed(0)
     m = HorizonNet(backbone="resnet18", hidden=16, rnn=rnn).eval()
@@ -35,16 +34,16 @@ def test_horizontal_wrap_equivariance():
     # conv and the max-pool wrap around); the BiLSTM itself is sequential, so only features are tested
     torch.manual_seed(0)
     m = HorizonNet(backbone="resnet18", hidden=8).eval()
-    x = torch.rand(1, 3, 64, 256)
+    x = torch.rand(1, 3, 32, 128)
     with torch.no_grad():
         a = m.features(x)
-        b = m.features(torch.roll(x, 128, -1))
-    assert torch.allclose(torch.roll(a, 128 // m.step_cols, -1), b, atol=1e-5)
+        b = m.features(torch.roll(x, 64, -1))
+    assert torch.allclose(torch.roll(a, 64 // m.step_cols, -1), b, atol=1e-5)
     m0 = HorizonNet(backbone="resnet18", hidden=8, circular=False).eval()
     m0.load_state_dict(m.state_dict())
     with torch.no_grad():
-        a0, b0 = m0.features(x), m0.features(torch.roll(x, 128, -1))
-    assert not torch.allclose(torch.roll(a0, 32, -1), b0, atol=1e-3)      # zero padding breaks it
+        a0, b0 = m0.features(x), m0.features(torch.roll(x, 64, -1))
+    assert not torch.allclose(torch.roll(a0, 16, -1), b0, atol=1e-3)      # zero padding breaks it
 
 
 def test_bad_size_raises_clear_error():
