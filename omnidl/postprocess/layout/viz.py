@@ -90,3 +90,39 @@ def plot_top_view(layouts: list[Layout] | Layout, labels: list[str] | None = Non
     if labels:
         ax.legend()
     return ax
+
+
+class LayoutVisualizer:
+    """Engine visualiser ``viz(outputs, batch) -> (3, h, w)`` in ``[0, 1]``: per sample the panorama with the
+    predicted boundaries (green) and the ground truth (red, from ``batch["boundary"]`` pixel rows), and a
+    strip of the predicted corner probability (white) over the target (red) below it."""
+
+    def __init__(self, max_images: int = 2, depth_max: float | None = None, strip: int = 16) -> None:
+        self.max_images, self.strip = max_images, strip
+
+    def __call__(self, outputs: dict, batch: dict):
+        import torch
+        imgs = []
+        n = min(self.max_images, batch["image"].shape[0])
+        for i in range(n):
+            img = batch["image"][i].detach().float().cpu().clamp(0, 1).clone()
+            _, H, W = img.shape
+            cols = torch.arange(W)
+            pred = ((outputs["boundary"][i].detach().float().cpu() / math.pi + 0.5) * H).clamp(0, H - 1).long()
+            if "boundary" in batch:
+                gt = batch["boundary"][i].detach().float().cpu()
+                ok = batch["boundary_valid"][i].cpu().bool() if "boundary_valid" in batch else torch.ones_like(gt, dtype=torch.bool)
+                for k in (0, 1):
+                    c, r = cols[ok[k]], gt[k][ok[k]].clamp(0, H - 1).long()
+                    img[:, r, c] = torch.tensor([1.0, 0.0, 0.0])[:, None]
+            for k in (0, 1):
+                img[:, pred[k], cols] = torch.tensor([0.0, 1.0, 0.0])[:, None]
+            strip = torch.zeros(3, self.strip, W)
+            p = torch.sigmoid(outputs["corner"][i].detach().float().cpu()).reshape(W)
+            rows = torch.arange(self.strip).view(-1, 1).float() / self.strip
+            strip[:] = (rows >= 1 - p.view(1, -1)).float()
+            heat = batch.get("corner_heat", batch.get("corner"))
+            if heat is not None:
+                strip[1:] *= (1 - 0.5 * heat[i].detach().float().cpu().reshape(1, 1, W))
+            imgs.append(torch.cat([img, strip], 1))
+        return torch.cat(imgs, 1)

@@ -86,3 +86,12 @@ def test_layout_roundtrip_overlay_and_top_view():
     assert over.shape == img.shape and over.sum() > 0 and img.sum() == 0
     ax = plot_top_view([lay, back], labels=["a", "b"], rc=1.0)
     assert len(ax.lines) >= 2
+
+
+def test_layout_visualizer():
+    from omnidl.postprocess.layout.viz import LayoutVisualizer
+    out = _outputs(1.0)
+    rows = (out["boundary"] / math.pi + 0.5) * 128
+    batch = {"image": torch.rand(1, 3, 128, 256), "boundary": rows, "corner_heat": torch.sigmoid(out["corner"])}
+    im = LayoutVisualizer(strip=8)(out, batch)
+    assert im.shape == (3, 136, 256) and 0 <= float(im.min()) and float(im.max()) <= 1
