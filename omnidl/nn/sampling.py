@@ -16,7 +16,10 @@ chunk of output positions (so that each chunk's columns stay in cache)::
     grad_X[band] += S_c^T @ (grad_out_c @ Wm^T)   # GEMM + precomputed CSR transpose of the chunk
     grad_W += cols^T @ grad_out_c       # columns recomputed in backward (nothing big is saved)
 
-No offsets are expanded over the batch: the plan is shared by every image. Outputs and
+On CPU the (image, chunk) tasks are split among ``torch.get_num_threads()`` worker threads
+whose ops run single-threaded: one fork/join per call instead of one per small op, which
+matters on a busy machine. No offsets are expanded over the batch: the plan is shared by
+every image. Outputs and
 input gradients keep the memory format of the input (channels-last is copy-free; NCHW costs
 one layout copy of the input, one per output chunk and one of the input gradient).
 
@@ -25,7 +28,10 @@ offsets and mask (circular padding of the input for ``wrap``): the test referenc
 """
 from __future__ import annotations
 
+import os
+import threading
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import torch
@@ -178,6 +184,47 @@ def _is_channels_last(t: Tensor) -> bool:
     return t.is_contiguous(memory_format=torch.channels_last) and not t.is_contiguous()
 
 
+# -- CPU execution: chunks run on single-threaded workers ------------------------------------------
+# Parallelising inside every small op (gather, GEMM, CSR product of one chunk) means hundreds of
+# fork/join points per call; on a busy machine each one waits for a descheduled thread. Instead,
+# the chunks are split among ``torch.get_num_threads()`` Python workers whose torch ops run
+# single-threaded (the ops release the GIL), so there is one join per call.
+_POOL: dict = {}
+_POOL_LOCK = threading.Lock()
+
+
+def _single_thread_init() -> None:
+    torch.set_num_threads(1)  # per-thread OpenMP/MKL setting of this worker
+
+
+def _cpu_pool(workers: int) -> ThreadPoolExecutor:
+    key = (os.getpid(), workers)  # a fork (e.g. DataLoader workers) gets its own pool
+    with _POOL_LOCK:
+        pool = _POOL.get(key)
+        if pool is None:
+            main_threads = torch.get_num_threads()
+            pool = ThreadPoolExecutor(workers, thread_name_prefix="omnidl-conv", initializer=_single_thread_init)
+            list(pool.map(lambda _: None, range(4 * workers)))  # start the workers now
+            torch.set_num_threads(main_threads)  # the workers' setting must not leak into new threads
+            _POOL[key] = pool
+    return pool
+
+
+def _run_split(tasks: list, fn, device: torch.device) -> list:
+    """``fn(part)`` on contiguous parts of ``tasks``: one part per worker on CPU, one part elsewhere."""
+    workers = torch.get_num_threads() if device.type == "cpu" else 1
+    workers = min(workers, len(tasks))
+    if workers <= 1 or threading.current_thread().name.startswith("omnidl-conv"):
+        return [fn(tasks)]
+    bounds = [round(i * len(tasks) / workers) for i in range(workers + 1)]
+    parts = [tasks[bounds[i]:bounds[i + 1]] for i in range(workers)]
+
+    def run(part: list):
+        with torch.no_grad():  # grad mode is per thread: the workers must not record either
+            return fn(part)
+    return list(_cpu_pool(workers).map(run, parts))
+
+
 class _FixedOffsetConv(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,  # type: ignore[override]
@@ -191,11 +238,12 @@ class _FixedOffsetConv(torch.autograd.Function):
         xr = _rows(x)
         wm = weight.permute(2, 3, 1, 0).reshape(K * C, Cout)
         wmt = wm.t()
-        chunks = plan.chunks(positions)
+        tasks = [(b, s, e) for b in range(B) for s, e, *_ in plan.chunks(positions)]
         if channels_last:  # output rows (B, P, Cout), written in place chunk by chunk
             out = torch.empty(B, P, Cout, dtype=x.dtype, device=x.device)
-            for b in range(B):
-                for s, e, *_ in chunks:
+
+            def work(part: list) -> None:
+                for b, s, e in part:
                     cols = _gather(plan, xr[b], s, e)
                     if bias is not None:
                         torch.addmm(bias, cols, wm, out=out[b, s:e])
@@ -205,12 +253,13 @@ class _FixedOffsetConv(torch.autograd.Function):
         else:  # NCHW output (B, Cout, P): each chunk computed transposed, then copied while in cache
             out = torch.empty(B, Cout, P, dtype=x.dtype, device=x.device)
             bcol = None if bias is None else bias.unsqueeze(1)
-            for b in range(B):
-                for s, e, *_ in chunks:
+
+            def work(part: list) -> None:
+                for b, s, e in part:
                     cols = _gather(plan, xr[b], s, e)
-                    y = torch.mm(wmt, cols.t()) if bcol is None else torch.addmm(bcol, wmt, cols.t())
-                    out[b, :, s:e] = y
+                    out[b, :, s:e] = torch.mm(wmt, cols.t()) if bcol is None else torch.addmm(bcol, wmt, cols.t())
             result = out.view(B, Cout, Ho, Wo)
+        _run_split(tasks, work, x.device)
         ctx.plan = plan
         ctx.positions = positions
         ctx.has_bias = bias is not None
@@ -239,25 +288,34 @@ class _FixedOffsetConv(torch.autograd.Function):
             def gchunk(b: int, s: int, e: int) -> Tensor:
                 return g[b, :, s:e].t()  # strided (P_c, Cout) view, BLAS-compatible
         need_x, need_w, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
-        gx = gw = gb = None
-        if need_x:
-            gx = torch.zeros(B, H * W, C, dtype=g.dtype, device=g.device)
-        if need_w:
-            gwm = torch.zeros(kh * kw * C, Cout, dtype=g.dtype, device=g.device)
         wmt = wm.t()
-        chunks = plan.chunks(ctx.positions)
-        for b in range(B):
-            for s, e, lo, hi, st in chunks:
+        tasks = [(b, s, e, lo, hi, st) for b in range(B) for s, e, lo, hi, st in plan.chunks(ctx.positions)]
+
+        def work(part: list) -> tuple[Tensor | None, Tensor | None]:
+            # private accumulators: input bands of neighbouring chunks overlap
+            gx = torch.zeros(B, H * W, C, dtype=g.dtype, device=g.device) if need_x else None
+            gwm = torch.zeros(kh * kw * C, Cout, dtype=g.dtype, device=g.device) if need_w else None
+            for b, s, e, lo, hi, st in part:
                 gc = gchunk(b, s, e)
                 if need_w:  # recompute the chunk's columns (cheap gather, stays in cache)
                     gwm.addmm_(_gather(plan, xr[b], s, e).t(), gc)
                 if need_x:
                     gx[b, lo:hi].addmm_(st, torch.mm(gc, wmt).view(-1, C))
+            return gx, gwm
+
+        parts = _run_split(tasks, work, g.device)
+        gx = gw = gb = None
         if need_x:
+            gx = parts[0][0]
+            for p in parts[1:]:
+                gx += p[0]
             gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
             if not ctx.channels_last:
                 gx = gx.contiguous()
         if need_w:
+            gwm = parts[0][1]
+            for p in parts[1:]:
+                gwm += p[1]
             gw = gwm.view(kh, kw, C, Cout).permute(3, 2, 0, 1)
         if need_b and ctx.has_bias:
             gb = grad_out.sum((0, 2, 3))
