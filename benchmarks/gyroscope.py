@@ -46,15 +46,28 @@ from omnidl.postprocess.gyroscope.sampling import rotate_equirect  # noqa: E402
 from omnidl.postprocess.gyroscope.scene import procedural_panorama  # noqa: E402
 
 
+CPU_TIMES: dict[int, float] = {}
+
+
 def _median_time(fn, reps: int, warmup: int = 2) -> float:
+    """Median wall time of ``fn``; the median process CPU time goes to ``CPU_TIMES[id(fn)]`` (on a busy
+    machine CPU seconds are the steadier figure: wall time counts the time other processes hold the cores)."""
     for _ in range(warmup):
         fn()
-    ts = []
+    ts, cs = [], []
     for _ in range(reps):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
         ts.append(time.perf_counter() - t)
+        cs.append(time.process_time() - c)
+    CPU_TIMES[id(fn)] = statistics.median(cs)
     return statistics.median(ts)
+
+
+def _timed(fn, reps: int, warmup: int = 2) -> tuple[float, float]:
+    """``(wall s, CPU s)`` medians."""
+    w = _median_time(fn, reps, warmup)
+    return w, CPU_TIMES.pop(id(fn))
 
 
 def speed(args) -> dict:
@@ -65,14 +78,15 @@ def speed(args) -> dict:
     ref = procedural_panorama(None, 128, 256, seed=1)
     cur = procedural_panorama(R, 128, 256, seed=1)
     res: dict = {"threads": args.threads, "load_average": os.getloadavg()}
-    t_mpp = _median_time(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=4), args.reps)
-    t_mpp1 = _median_time(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1), args.reps)
-    t_base = _median_time(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1, grid_height=0, max_iter=10),
-                          max(1, args.reps // 2), warmup=1)
-    t_pvg = _median_time(lambda: pvg_refine(cur, ref, R.float(), level=5), args.reps)
+    t_mpp, c_mpp = _timed(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=4), args.reps)
+    t_mpp1, c_mpp1 = _timed(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1), args.reps)
+    t_base, c_base = _timed(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1, grid_height=0, max_iter=10),
+                            max(1, args.reps // 2), warmup=1)
+    t_pvg, c_pvg = _timed(lambda: pvg_refine(cur, ref, R.float(), level=5), args.reps)
     hl, vp = horizon_heatmaps(R.float(), 64, 128)
-    t_fit = _median_time(lambda: fit_horizon(hl, vp), args.reps)
-    res.update(mpp_s=t_mpp, mpp_1start_s=t_mpp1, baseline_mpp_reference_eval_s=t_base, pvg_s=t_pvg, horizon_fit_s=t_fit)
+    t_fit, c_fit = _timed(lambda: fit_horizon(hl, vp), args.reps)
+    res.update(mpp_s=t_mpp, mpp_1start_s=t_mpp1, baseline_mpp_reference_eval_s=t_base, pvg_s=t_pvg, horizon_fit_s=t_fit,
+               cpu_s={"mpp": c_mpp, "mpp_1start": c_mpp1, "baseline_mpp": c_base, "pvg": c_pvg, "horizon_fit": c_fit})
     x = torch.rand(1, 3, 128, 256)
     for tag, kw in [("holinet_resnet50_equi", dict(backbone="resnet50", conv="equi")),
                     ("holinet_small_std", dict(backbone="resnet18", width=0.25, conv="std"))]:
@@ -81,12 +95,15 @@ def speed(args) -> dict:
         def fwd():
             with torch.no_grad():
                 m(x)
-        t_net = _median_time(fwd, args.reps)
+        t_net, c_net = _timed(fwd, args.reps)
         total = t_net + t_fit + t_mpp + t_pvg
-        res[tag] = {"forward_s": t_net, "pipeline_s": total, "pipeline_fps": 1 / total}
+        ctotal = c_net + c_fit + c_mpp + c_pvg
+        res[tag] = {"forward_s": t_net, "pipeline_s": total, "pipeline_fps": 1 / total, "forward_cpu_s": c_net,
+                    "pipeline_cpu_s": ctotal}
     res["baseline_fps"] = 1 / t_base
     for tag in ("holinet_resnet50_equi", "holinet_small_std"):
         res[tag]["fps_ratio_to_baseline"] = res[tag]["pipeline_fps"] / res["baseline_fps"]
+        res[tag]["cpu_ratio_to_baseline"] = c_base / res[tag]["pipeline_cpu_s"]
     print(f"load average {res['load_average']}, {args.threads} threads, 256x128, batch 1 (median of {args.reps})")
     print(f"baseline MPP (reference evaluation, 1 start, 10 GN it.): {t_base:.3f} s = {1 / t_base:.2f} fps")
     print(f"MPP (tabulated field, 4 starts): {t_mpp:.3f} s   (1 start: {t_mpp1:.3f} s, "
@@ -96,6 +113,11 @@ def speed(args) -> dict:
         r = res[tag]
         print(f"{tag}: forward {r['forward_s']:.3f} s; HoLiNet+MPP+PVG {r['pipeline_s']:.3f} s/frame = "
               f"{r['pipeline_fps']:.2f} fps = {r['fps_ratio_to_baseline']:.2f}x the baseline MPP alone")
+    print("CPU seconds (process time, all threads): " + ", ".join(f"{k} {v:.3f}" for k, v in res["cpu_s"].items()))
+    for tag in ("holinet_resnet50_equi", "holinet_small_std"):
+        r = res[tag]
+        print(f"{tag}: forward {r['forward_cpu_s']:.3f} CPU-s; pipeline {r['pipeline_cpu_s']:.3f} CPU-s/frame "
+              f"(baseline MPP / pipeline CPU = {r['cpu_ratio_to_baseline']:.2f})")
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=2))
     return res
