@@ -41,8 +41,9 @@ from torch import Tensor
 from .offsets import Pair, output_size
 
 
-#: target size (bytes) of one chunk of gathered columns; keeps the gather -> GEMM -> scatter in cache
-CHUNK_BYTES = 2_500_000
+#: target size (bytes) of one chunk of gathered columns (gather -> GEMM -> scatter stay in L2/L3;
+#: measured here: ~4k positions of 64 channels beat both 1k and 16k)
+CHUNK_BYTES = 10_000_000
 
 
 @dataclass(frozen=True, eq=False)
