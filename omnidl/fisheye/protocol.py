@@ -103,7 +103,7 @@ def train_steps(model: torch.nn.Module, dataset, loss_fn, steps: int, lr: float,
             loss.backward()
             opt.step()
             sched.step()
-            losses.append(float(loss))
+            losses.append(float(loss.detach()))
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.3f}")
         epoch += 1
@@ -233,8 +233,13 @@ def load_config(path: str | None, overrides: list[str]) -> DictConfig:
     return cfg
 
 
-def run(cfg: DictConfig, out_dir: str | Path, fresh: bool = False) -> dict[str, Any]:
-    """Run the whole protocol; returns ``{"rows", "radial", "coverage", "comparison"}``."""
+def run(cfg: DictConfig, out_dir: str | Path, fresh: bool = False, panoramas: dict[str, Any] | None = None
+        ) -> dict[str, Any]:
+    """Run the whole protocol; returns ``{"rows", "radial", "coverage", "comparison"}``.
+
+    ``panoramas``: optional ``{"train": dataset, "test": dataset}`` of equirectangular sample dicts used
+    instead of ``cfg.panoramas`` (e.g. a small stand-in in tests).
+    """
     from hydra.utils import instantiate
     t0 = time.time()
     out = Path(out_dir)
@@ -252,7 +257,8 @@ def run(cfg: DictConfig, out_dir: str | Path, fresh: bool = False) -> dict[str, 
 
     banks = {}
     for split in ("train", "test"):
-        src = build_panoramas(OmegaConf.to_container(cfg.panoramas[split], resolve=True), split)
+        src = (panoramas[split] if panoramas is not None else
+               build_panoramas(OmegaConf.to_container(cfg.panoramas[split], resolve=True), split))
         banks[split] = PanoramaBank(src, f"{split} panoramas")
     pers = {s: PerspectiveFromPanoramas(width=W, height=H, fov_deg=float(cfg.get("pers", {}).get("fov_deg", 90.0)),
                                         panoramas=banks[s], split=s, views_per_panorama=views, seed=seed, **angles)
@@ -340,7 +346,7 @@ def run(cfg: DictConfig, out_dir: str | Path, fresh: bool = False) -> dict[str, 
                       + markdown_tables(rows, tasks, coverage))
     depth_plot = [k for k in ("mre", "mae", "rmse", "delta1") if "depth" in tasks]
     seg_plot = [k for k in ("miou", "macc", "pixel_acc") if "semantic" in tasks]
-    for ds, runs in radial.items():
+    for ds, runs in (radial.items() if cfg.get("plots", True) else ()):
         main = {k: v for k, v in runs.items() if not k.endswith("-R")}
         for task, keys in (("depth", depth_plot), ("semantic", seg_plot)):
             if keys:

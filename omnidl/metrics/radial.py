@@ -81,7 +81,7 @@ class RadialMetrics:
             self.edges = radial_bin_edges(math.nextafter(rmax, math.inf), self.num_bins)
             self.reset()
         e = torch.tensor(self.edges, dtype=radius.dtype, device=radius.device)
-        b = torch.bucketize(radius, e, right=True) - 1
+        b = torch.bucketize(radius.contiguous(), e, right=True) - 1
         b = torch.where(radius == e[-1], torch.full_like(b, len(self.edges) - 2), b)
         return torch.where((b >= 0) & (b < len(self.edges) - 1), b, torch.full_like(b, -1))
 
@@ -222,7 +222,8 @@ def plot_radial(curves: Mapping[str, Sequence[Mapping[str, float]]], metrics: Se
     axes.ravel()[0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.12 / nrows, top=1 - (0.16 if title else 0.08) / nrows,
+                        wspace=0.3, hspace=0.45)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, format=path.suffix.lstrip(".") or "png"))
