@@ -167,7 +167,7 @@ def markdown_tables(rows: list[dict], tasks, coverage: dict[str, dict]) -> str:
     if any(r["dataset"].endswith("-R") for r in rows):
         out += ["### Rectification baseline (Tables 7.3/7.4 shape, standard convolutions)", "",
                 "| | Input | " + ("MRE ↓ | MAE ↓ | RMSE ↓ | δ1 ↑ | " if "depth" in tasks else "")
-                + ("mIoU | mAcc | " if "semantic" in tasks else "") + "covered |",
+                + ("mIoU | mAcc | " if "semantic" in tasks else "") + "pixels with a prediction |",
                 "|---|---|" + "---|" * ((4 if "depth" in tasks else 0) + (2 if "semantic" in tasks else 0) + 1)]
         for r in rect:
             cells = []
@@ -346,14 +346,19 @@ def run(cfg: DictConfig, out_dir: str | Path, fresh: bool = False, panoramas: di
                       + markdown_tables(rows, tasks, coverage))
     depth_plot = [k for k in ("mre", "mae", "rmse", "delta1") if "depth" in tasks]
     seg_plot = [k for k in ("miou", "macc", "pixel_acc") if "semantic" in tasks]
+    # thesis colours: standard red, calibrated blue; baseline dashed, fine-tuned solid; rectified green
+    styles = {"BL-Std": {"color": "tab:red", "linestyle": "--"}, "FT-Std": {"color": "tab:red"},
+              "BL-Calib": {"color": "tab:blue", "linestyle": "--"}, "FT-Calib": {"color": "tab:blue"},
+              "BL-R": {"color": "tab:green", "linestyle": "--"}, "FT-R": {"color": "tab:green"}}
     for ds, runs in (radial.items() if cfg.get("plots", True) else ()):
         main = {k: v for k, v in runs.items() if not k.endswith("-R")}
         for task, keys in (("depth", depth_plot), ("semantic", seg_plot)):
             if keys:
-                plot_radial(main, keys, out / f"radial_{ds}_{task}.png", f"{ds}: Std vs Calib")
+                plot_radial(main, keys, out / f"radial_{ds}_{task}.png", f"{ds}: Std vs Calib", styles=styles)
                 rr = {k: v for k, v in runs.items() if k in ("BL-Std", "FT-Std", "BL-R", "FT-R")}
                 if any(k.endswith("-R") for k in rr):
-                    plot_radial(rr, keys, out / f"radial_{ds}_rectified_{task}.png", f"{ds} vs {ds}-R (Std)")
+                    plot_radial(rr, keys, out / f"radial_{ds}_rectified_{task}.png", f"{ds} vs {ds}-R (Std)",
+                                styles=styles)
     comparison = compare_large_radii(radial, float(cfg.get("large_radius_fraction", 1 / 3)))
     summary = {"rows": rows, "coverage": coverage, "comparison": comparison, "seconds": time.time() - t0,
                "config": OmegaConf.to_container(cfg, resolve=True)}

@@ -191,10 +191,12 @@ def rows_to_csv(rows: Sequence[Mapping[str, object]]) -> str:
 
 
 def plot_radial(curves: Mapping[str, Sequence[Mapping[str, float]]], metrics: Sequence[str], path: str | Path,
-                title: str = "", xlabel: str = "distance to the principal point (px)") -> Path:
+                title: str = "", xlabel: str = "distance to the principal point (px)",
+                styles: Mapping[str, Mapping[str, str]] | None = None) -> Path:
     """Plot ``metric`` mean ± std against the bin centre, one curve per label, one panel per metric.
 
-    ``curves``: label -> :meth:`RadialMetrics.table` rows. Written atomically (PNG by the suffix).
+    ``curves``: label -> :meth:`RadialMetrics.table` rows; ``styles``: optional label -> ``{"color": ...,
+    "linestyle": ...}``. Written atomically (PNG by the suffix).
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -211,8 +213,9 @@ def plot_radial(curves: Mapping[str, Sequence[Mapping[str, float]]], metrics: Se
             x = np.array([r["r_mid"] for r in rows], dtype=float)
             y = np.array([r.get(f"{m}_mean", math.nan) for r in rows], dtype=float)
             s = np.nan_to_num(np.array([r.get(f"{m}_std", math.nan) for r in rows], dtype=float))
-            col = colours[c % len(colours)]
-            ax.plot(x, y, "-o", ms=3, color=col, label=label)
+            st = dict((styles or {}).get(label, {}))
+            col = st.pop("color", colours[c % len(colours)])
+            ax.plot(x, y, marker="o", ms=3, color=col, label=label, **st)
             ax.fill_between(x, y - s, y + s, color=col, alpha=0.15)
         ax.set_title(m)
         ax.set_xlabel(xlabel)
