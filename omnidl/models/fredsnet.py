@@ -115,7 +115,7 @@ class FusionHead(nn.Module):
             m = med(d)
             if m.shape[-2:] != size:
                 m = F.interpolate(m, size=size, mode="bilinear", align_corners=True)
-            acc = m if i == 0 else acc + self.branch_weights[i - 1] * m
+            acc = m if i == 0 else torch.addcmul(acc, self.branch_weights[i - 1], m)   # acc + w_i m_i, one pass
         return self.out(acc)
 
 

@@ -243,3 +243,16 @@ def test_hydra_configs_compose_and_build(overrides):
     metrics.update({"depth": torch.ones(1, 1, 2, 2), "semantic": torch.zeros(1, 14, 2, 2)},
                    {"depth": torch.ones(1, 1, 2, 2), "semantic": torch.ones(1, 2, 2, dtype=torch.long)})
     assert {"mre", "delta1", "miou", "macc"} <= set(metrics.compute())
+
+
+def test_fusion_head_is_the_weighted_sum_of_upsampled_maps():
+    from omnidl.models.fredsnet import FusionHead
+    torch.manual_seed(4)
+    head = FusionHead([8, 6], 4, 3, activation="prelu", out_activation="none", out_norm=False,
+                      wconv_kwargs={}).eval()
+    with torch.no_grad():
+        head.branch_weights.fill_(-0.7)
+        maps = [torch.randn(1, 8, 4, 8), torch.randn(1, 6, 8, 16)]
+        m0 = F.interpolate(head.mediators[0](maps[0]), size=(8, 16), mode="bilinear", align_corners=True)
+        expect = head.out(m0 - 0.7 * head.mediators[1](maps[1]))
+        torch.testing.assert_close(head(maps), expect)
