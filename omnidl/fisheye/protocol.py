@@ -191,7 +191,8 @@ def markdown_tables(rows: list[dict], tasks, coverage: dict[str, dict]) -> str:
 def compare_large_radii(radial: dict[str, dict[str, list[dict]]], fraction: float = 1 / 3) -> dict[str, Any]:
     """Per fisheye dataset: FT Calib vs FT Std averaged over the outer ``fraction`` of the radius bins
     that hold pixels (lower is better for depth errors; higher for deltas and segmentation scores)."""
-    better_high = {"delta1", "delta2", "delta3", "miou", "macc", "pixel_acc"}
+    better_high = {"delta1", "delta2", "delta3", "miou", "macc", "pixel_acc", "miou_all", "macc_all",
+                   "pixel_acc_all"}
     res: dict[str, Any] = {}
     for ds, runs in radial.items():
         std, cal = runs.get("FT-Std"), runs.get("FT-Calib")
@@ -202,9 +203,11 @@ def compare_large_radii(radial: dict[str, dict[str, list[dict]]], fraction: floa
         per: dict[str, Any] = {"r_from": std[outer[0]]["r_lo"], "r_to": std[outer[-1]]["r_hi"], "metrics": {}}
         wins = 0
         n = 0
-        for key in [k[:-5] for k in std[0] if k.endswith("_mean")]:
-            a = [std[i][f"{key}_mean"] for i in outer]
-            b = [cal[i][f"{key}_mean"] for i in outer]
+        # per-image means (``<m>_mean``) and dataset-wide per-bin segmentation scores (``<m>_all``)
+        for col in [k for k in std[0] if k.endswith(("_mean", "_all"))]:
+            key = col[:-5] if col.endswith("_mean") else col
+            a = [std[i][col] for i in outer]
+            b = [cal[i][col] for i in outer]
             if any(math.isnan(x) for x in a + b):
                 continue
             sa, sb = sum(a) / len(a), sum(b) / len(b)
