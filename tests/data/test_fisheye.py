@@ -4,6 +4,7 @@ import importlib.util
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -130,3 +131,17 @@ def test_panorama_shape_checked():
     ds = FisheyeFromPanoramas(KannalaBrandt.example(), panoramas=bad)
     with pytest.raises(ValueError, match="twice as wide"):
         ds[0]
+
+
+def test_stanford2d3ds_panoramas_through_the_existing_loader(tmp_path):
+    from data_fixtures import write_stanford
+    truth = write_stanford(tmp_path, areas=("1", "5a", "5b"), per_area=1, w=64, h=32)
+    ds = FisheyeFromPanoramas("kb_f165", width=36, height=32, split="test", views_per_panorama=2,
+                              panoramas={"type": "stanford2d3ds", "root": str(tmp_path), "height": 32, "width": 64})
+    assert len(ds) == 4                                    # fold 1: area 5 (5a + 5b) is the test set
+    s = ds[0]
+    depths = torch.tensor(np.concatenate([t[1].ravel() for k, t in truth.items() if "area_5" in k]))
+    got = s["depth"][0][s["valid"]]
+    assert got.numel() > 100 and bool((got > 0).all())
+    # nearest sampling keeps the panorama's depth values exactly (1/512 m units)
+    assert bool(torch.isin((got.double() * 512).round(), (depths * 512).round()).all())
