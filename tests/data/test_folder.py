@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from data_fixtures import truncate
+from .data_fixtures import truncate
 from omnidl.data.folder import ImageFolder
 from omnidl.data.robust import CorruptSampleError
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from data_fixtures import write_matterport
+from .data_fixtures import write_matterport
 from omnidl.data.matterport3d import Matterport3D
 
 

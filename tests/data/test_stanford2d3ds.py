@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from data_fixtures import S2D3DS_CLASSES, truncate, write_stanford
+from .data_fixtures import S2D3DS_CLASSES, truncate, write_stanford
 from omnidl.data.collate import collate_samples
 from omnidl.data.robust import CorruptSampleError, SkipCorrupt
 from omnidl.data.stanford2d3ds import FOLDS, Stanford2D3DS, label_lut

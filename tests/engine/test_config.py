@@ -2,7 +2,7 @@ import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from engine_helpers import make_cfg
+from .engine_helpers import make_cfg
 
 
 @pytest.mark.parametrize("override", ["trainer.max_stpes=3", "optim.lrr=1", "sched.warmup=3", "eval.rotation=[1]"])

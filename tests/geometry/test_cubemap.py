@@ -6,7 +6,7 @@ import py360convert
 import pytest
 import torch
 
-from geom_helpers import render, texture
+from .geom_helpers import render, texture
 from omnidl.cameras import Equirectangular, Pinhole
 from omnidl.geometry import (FACE_NAMES, cube_face_camera, cube_face_rotations, cubemap_to_camera,
                              cubemap_to_equirect, equirect_to_cubemap, euler_to_matrix, reproject)

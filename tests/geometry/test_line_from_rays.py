@@ -3,7 +3,7 @@ import math
 
 import torch
 
-from geom_helpers import noncentral_panorama_rays
+from .geom_helpers import noncentral_panorama_rays
 from omnidl.cameras import Equirectangular, Rays
 from omnidl.geometry import LineStatus, line_from_rays
 from omnidl.geometry import plucker as P

@@ -3,7 +3,7 @@ import math
 
 import torch
 
-from geom_helpers import render, texture
+from .geom_helpers import render, texture
 from omnidl.cameras import Equirectangular
 from omnidl.geometry import euler_to_matrix, random_rotation, rotate_panorama
 

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from geom_helpers import fisheye_195, render
+from .geom_helpers import fisheye_195, render
 from omnidl.geometry import perspective_camera, rectification_coverage, rectify, unrectify
 
 D = torch.float64

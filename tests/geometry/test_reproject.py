@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import torch
 
-from geom_helpers import render
+from .geom_helpers import render
 from omnidl.cameras import Equirectangular, build
 from omnidl.geometry import euler_to_matrix, reproject
 from omnidl.geometry.reproject import main

@@ -8,7 +8,7 @@ import py360convert
 import pytest
 import torch
 
-from geom_helpers import fisheye_195, render, texture
+from .geom_helpers import fisheye_195, render, texture
 from omnidl.cameras import Equirectangular, Pinhole, get_camera_class, list_cameras
 from omnidl.geometry import clear_warp_cache, euler_to_matrix, reproject, warp_grid
 from omnidl.geometry.rotations import axis_angle_to_matrix
