@@ -112,7 +112,7 @@ class TrainConfig:
     viz: Any = None
     paths: PathsConfig = field(default_factory=PathsConfig)
     checkpoint: Optional[str] = None
-    postprocess: list[str] = field(default_factory=list)
+    postprocess: Any = field(default_factory=list)   # hook names: [a, b] or a single name
     postprocess_options: Any = field(default_factory=dict)
     eval: EvalConfig = field(default_factory=EvalConfig)  # evaluate.py options (here too: experiments set both)
     search: Any = None                 # filled by +search=... (loss-weight search)

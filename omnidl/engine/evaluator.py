@@ -150,7 +150,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     metrics = build_metrics(cfg)
     per_image_metrics = copy.deepcopy(metrics) if metrics is not None else None
     viz = build_viz(cfg)
-    hooks = list(cfg.get("postprocess") or [])
+    hooks = cfg.get("postprocess") or []
+    hooks = [h.strip() for h in hooks.split(",") if h.strip()] if isinstance(hooks, str) else list(hooks)
     hook_opts = cfg.get("postprocess_options")
     hook_opts = OmegaConf.to_container(hook_opts, resolve=True) if hook_opts else {}
     cams: dict[tuple[int, int], Any] = {}
