@@ -256,3 +256,16 @@ def test_fusion_head_is_the_weighted_sum_of_upsampled_maps():
         m0 = F.interpolate(head.mediators[0](maps[0]), size=(8, 16), mode="bilinear", align_corners=True)
         expect = head.out(m0 - 0.7 * head.mediators[1](maps[1]))
         torch.testing.assert_close(head(maps), expect)
+
+
+def test_channels_last_matches_contiguous_layout():
+    torch.manual_seed(5)
+    a = FreDSNet(**SMALL, channels_last=True).eval()
+    b = FreDSNet(**SMALL, channels_last=False).eval()
+    b.load_state_dict(a.state_dict())
+    x = torch.rand(1, 3, 32, 64)
+    with torch.no_grad():
+        oa, ob = a(x), b(x)
+    for k in oa:
+        assert oa[k].is_contiguous()
+        torch.testing.assert_close(oa[k], ob[k], atol=1e-4, rtol=1e-4)
