@@ -240,8 +240,11 @@ class _FixedOffsetConv(torch.autograd.Function):
         wm = weight.permute(2, 3, 1, 0).reshape(K * C, Cout)
         wmt = wm.t()
         tasks = [(b, s, e) for b in range(B) for s, e, *_ in plan.chunks(positions)]
+        # ``result`` is allocated as the returned tensor itself (never a view of an internal buffer), so that
+        # in-place ops after the convolution (e.g. ReLU(inplace=True)) work with autograd
         if channels_last:  # output rows (B, P, Cout), written in place chunk by chunk
-            out = torch.empty(B, P, Cout, dtype=x.dtype, device=x.device)
+            result = torch.empty(B, Cout, Ho, Wo, dtype=x.dtype, device=x.device, memory_format=torch.channels_last)
+            out = result.permute(0, 2, 3, 1).view(B, P, Cout)
 
             def work(part: list) -> None:
                 for b, s, e in part:
@@ -250,16 +253,15 @@ class _FixedOffsetConv(torch.autograd.Function):
                         torch.addmm(bias, cols, wm, out=out[b, s:e])
                     else:
                         torch.mm(cols, wm, out=out[b, s:e])
-            result = out.view(B, Ho, Wo, Cout).permute(0, 3, 1, 2)
         else:  # NCHW output (B, Cout, P): each chunk computed transposed, then copied while in cache
-            out = torch.empty(B, Cout, P, dtype=x.dtype, device=x.device)
+            result = torch.empty(B, Cout, Ho, Wo, dtype=x.dtype, device=x.device)
+            out = result.view(B, Cout, P)
             bcol = None if bias is None else bias.unsqueeze(1)
 
             def work(part: list) -> None:
                 for b, s, e in part:
                     cols = _gather(plan, xr[b], s, e)
                     out[b, :, s:e] = torch.mm(wmt, cols.t()) if bcol is None else torch.addmm(bcol, wmt, cols.t())
-            result = out.view(B, Cout, Ho, Wo)
         _run_split(tasks, work, x.device)
         ctx.plan = plan
         ctx.positions = positions

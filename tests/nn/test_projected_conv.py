@@ -139,3 +139,18 @@ def test_configuration_errors():
         ProjectedConv2d(3, 4, 3, camera="equirect")
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
         ProjectedConv2d(3, 4, 3, camera=cam)(torch.randn(1, 2, 8, 8))
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_inplace_activation_after_fast_conv(channels_last):
+    """The fast backend's output is a plain tensor: ReLU(inplace=True) right after it works with autograd."""
+    from omnidl.cameras import Equirectangular
+    from omnidl.nn import ProjectedConv2d
+    conv = ProjectedConv2d(3, 4, 3, padding=1, camera=Equirectangular(width=32, height=16), backend="fast")
+    x = torch.rand(2, 3, 16, 32, requires_grad=True)
+    if channels_last:
+        x = x.detach().to(memory_format=torch.channels_last).requires_grad_(True)
+    y = torch.nn.functional.relu(conv(x), inplace=True)
+    y.sum().backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all()
+    assert conv.weight.grad is not None
