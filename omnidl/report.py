@@ -24,6 +24,9 @@ from omnidl.utils.io import atomic_write, atomic_write_text
 
 PREFERRED = ["mre", "mae", "rmse", "rmse_log", "rmselog", "delta1", "delta2", "delta3", "miou", "macc",
              "ce", "cen", "iou3d", "iou2d"]
+PRETTY = {"mre": "MRE", "mae": "MAE", "rmse": "RMSE", "rmse_log": "RMSElog", "rmselog": "RMSElog", "delta1": "δ¹",
+          "delta2": "δ²", "delta3": "δ³", "miou": "mIoU", "macc": "mAcc", "ce": "CE", "cen": "CEN",
+          "iou3d": "3D IoU", "iou2d": "2D IoU"}
 LOWER_IS_BETTER = {"mre", "mae", "rmse", "rmse_log", "rmselog", "ce", "cen", "loss"}
 
 
@@ -96,8 +99,19 @@ def collect(root: str | Path) -> list[dict[str, Any]]:
     return records
 
 
-def table(records: list[dict[str, Any]], columns: list[str] | None = None) -> tuple[list[str], list[list[str]]]:
+def table(records: list[dict[str, Any]], columns: list[str] | None = None,
+          all_metrics: bool = False) -> tuple[list[str], list[list[str]]]:
+    """Header and rows. By default only the thesis' table metrics (MRE ... mAcc, layout CE/IoU) are columns,
+    taken from the final validation (``final/``) or evaluation (``metrics/``) results; ``all_metrics`` keeps
+    every scalar."""
     keys = columns or _order(sorted({k for r in records for k in r["metrics"]}))
+    if not columns and not all_metrics:
+        chosen: dict[str, str] = {}
+        for k in keys:  # one column per metric name, preferring evaluation over final validation results
+            s = _short(k)
+            if s in PREFERRED and (s not in chosen or k.startswith("metrics/")):
+                chosen[s] = k
+        keys = [chosen[s] for s in PREFERRED if s in chosen] or keys
     header = ["network"] + keys
     rows = []
     for r in records:
@@ -110,7 +124,8 @@ def table(records: list[dict[str, Any]], columns: list[str] | None = None) -> tu
 
 
 def to_markdown(header: list[str], rows: list[list[str]]) -> str:
-    arrows = [h + (" ↓" if _short(h) in LOWER_IS_BETTER else " ↑" if _short(h) in PREFERRED else "") for h in header]
+    arrows = [PRETTY.get(_short(h), h) + (" ↓" if _short(h) in LOWER_IS_BETTER else " ↑" if _short(h) in PREFERRED
+                                           else "") for h in header]
     arrows[0] = header[0]
     lines = ["| " + " | ".join(arrows) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
@@ -148,11 +163,11 @@ def plot_rotation(records: list[dict[str, Any]], path: Path) -> bool:
     return True
 
 
-def write_report(root: str | Path, out: str | Path | None = None) -> dict[str, Path]:
+def write_report(root: str | Path, out: str | Path | None = None, all_metrics: bool = False) -> dict[str, Path]:
     """Collect ``root`` and write ``results.md``, ``results.csv`` (and ``rotation.png``) into ``out`` (default root)."""
     records = collect(root)
     out = Path(out or root)
-    header, rows = table(records)
+    header, rows = table(records, all_metrics=all_metrics)
     written = {"markdown": atomic_write_text(out / "results.md", to_markdown(header, rows))}
     buf = io.StringIO()
     csv.writer(buf).writerows([header] + rows)
@@ -166,9 +181,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m omnidl.report", description=__doc__.split("\n\n")[0])
     ap.add_argument("sweep", help="a multirun folder (or any folder with job sub-folders holding metrics.json)")
     ap.add_argument("--out", help="where to write results.md/results.csv (default: the sweep folder)")
+    ap.add_argument("--all", action="store_true", help="a column for every scalar metric, not only the table ones")
     args = ap.parse_args(argv)
     try:
-        written = write_report(args.sweep, args.out)
+        written = write_report(args.sweep, args.out, all_metrics=args.all)
     except FileNotFoundError as exc:
         print(exc, file=sys.stderr)
         return 2

@@ -21,7 +21,7 @@ def test_report_table_rows_and_codes(tmp_path):
     md = written["markdown"].read_text()
     for c in codes:
         assert f"| {c} |" in md
-    assert md.index("mre") < md.index("delta1") < md.index("miou")
+    assert md.index("MRE") < md.index("δ¹") < md.index("mIoU")
     assert len(md.strip().splitlines()) == 2 + len(codes)
     assert written["rotation"].exists()
 
