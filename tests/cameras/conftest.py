@@ -1,11 +1,7 @@
-"""Camera tests use small tensors: one intra-op thread avoids thread-pool overhead on shared CPUs."""
+"""Camera tests use small tensors: one intra-op thread (see tests/conftest.py)."""
 import pytest
-import torch
 
 
 @pytest.fixture(autouse=True)
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _one_thread(single_thread):
     yield
-    torch.set_num_threads(n)

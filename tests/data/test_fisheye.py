@@ -23,11 +23,8 @@ F195_VALUES = [540, 480, 287, 287, 1080, 960, 195, 3.37012024344156e-19, -3.5438
 
 
 @pytest.fixture(autouse=True)
-def single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _one_thread(single_thread):
     yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")

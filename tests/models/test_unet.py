@@ -12,11 +12,8 @@ from omnidl.nn.projected_conv import ProjectedConv2d
 
 
 @pytest.fixture(autouse=True)
-def single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _one_thread(single_thread):
     yield
-    torch.set_num_threads(n)
 
 
 def small_fisheye(w=24, h=16):
