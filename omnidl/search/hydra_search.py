@@ -69,7 +69,13 @@ def _task_overrides() -> tuple[str | None, list[str]]:
         return None, []
     keep = [o for o in hc.overrides.task
             if not o.lstrip("+~").startswith("search") and not o.startswith("hydra.")]
-    return hc.job.config_name, keep
+    # the group choices of this run (including those the search config itself selected, e.g. its model),
+    # so that composing without the search still gives the same model/data/loss
+    explicit = {o.lstrip("+~").split("=", 1)[0] for o in keep}
+    choices = [f"{g}={c}" for g, c in hc.runtime.choices.items()
+               if c is not None and "/" not in g and not g.startswith("hydra") and g != "search"
+               and g not in explicit]
+    return hc.job.config_name, choices + keep
 
 
 def make_trial_config_fn(cfg: DictConfig, spec: SearchSpec, search_dir: Path) -> Callable[[dict, int], DictConfig]:
