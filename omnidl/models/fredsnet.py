@@ -34,6 +34,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.nn.ffc import FourierBlock
+from omnidl.cameras import Equirectangular
+from omnidl.nn.projected_conv import as_camera
 from omnidl.nn.wconv import ConvNormAct, WConv
 
 from ._backbone import ResNetFeatures
@@ -119,16 +121,6 @@ class FusionHead(nn.Module):
         return self.out(acc)
 
 
-def _equirect_camera(camera: Any) -> Any:
-    """The camera of Equi layers: a given ``Camera`` / config mapping, or a full equirect panorama."""
-    from omnidl import cameras
-    if camera is None:
-        return cameras.Equirectangular(width=512, height=256)
-    if isinstance(camera, cameras.Camera):
-        return camera
-    return cameras.build(camera)
-
-
 class FreDSNet(nn.Module):
     """FreDSNet (see the module docstring). ``forward(image (B,3,H,W) in [0,1])`` returns
     ``{"depth": (B,1,H,W) >= 0 metres, "semantic": (B,num_classes,H,W) logits}``.
@@ -180,7 +172,7 @@ class FreDSNet(nn.Module):
         if not outputs or set(outputs) - {"depth", "semantic"}:
             raise ValueError(f"FreDSNet: outputs must be a non-empty subset of ('depth', 'semantic'), got {outputs}")
         self.num_classes, self.outputs = int(num_classes), outputs
-        cam = _equirect_camera(camera) if conv == "equi" else None
+        cam = as_camera(camera, default=Equirectangular(width=512, height=256)) if conv == "equi" else None
         parts = set(equi_parts) if cam is not None else set()
 
         self.backbone = ResNetFeatures(backbone, pretrained=pretrained)

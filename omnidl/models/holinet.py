@@ -34,19 +34,13 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from omnidl.cameras import Equirectangular
+from omnidl.nn.projected_conv import as_camera
+
 from ._backbone import ResNetFeatures
 from .registry import register_model
 
 DECODER_WIDTHS = (512, 256, 128, 64, 64)
-
-
-def _equirect_camera(camera: Any):
-    from omnidl import cameras
-    if camera is None:
-        return cameras.Equirectangular(width=256, height=128)
-    if isinstance(camera, cameras.Camera):
-        return camera
-    return cameras.build(camera)
 
 
 class _ConvAct(nn.Sequential):
@@ -110,7 +104,7 @@ class HoLiNet(nn.Module):
         self.conv = conv
         if conv == "equi":
             from omnidl.nn import convert_conv2d
-            convert_conv2d(self, camera=_equirect_camera(camera))
+            convert_conv2d(self, camera=as_camera(camera, default=Equirectangular(width=256, height=128)))
 
     def forward(self, image: Tensor) -> dict[str, Tensor]:
         """``image (B, 3, H, W)`` RGB in ``[0, 1]`` -> dict of logits (see the module docstring)."""

@@ -90,9 +90,12 @@ def plan_cache_info() -> dict[str, int]:
                 "plan_bytes": plan_bytes, "offset_bytes": off_bytes}
 
 
-def as_camera(camera) -> Camera | None:
-    """``None``, a :class:`Camera`, or a camera config mapping (``{"type": ..., ...}``) -> camera."""
-    if camera is None or isinstance(camera, Camera):
+def as_camera(camera, default: Camera | None = None) -> Camera | None:
+    """``None``, a :class:`Camera`, or a camera config mapping (``{"type": ..., ...}``) -> camera
+    (``default`` for ``None``)."""
+    if camera is None:
+        return default
+    if isinstance(camera, Camera):
         return camera
     try:
         from omegaconf import DictConfig
