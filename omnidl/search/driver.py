@@ -17,11 +17,12 @@ from __future__ import annotations
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from omnidl.utils.io import atomic_write, atomic_write_json
 
 from .space import SearchSpec
 
@@ -63,15 +64,8 @@ def _quiet_ax() -> None:
 
 
 def _save(client, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        client.save_to_json_file(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Write the Ax experiment to ``path`` atomically."""
+    atomic_write(path, client.save_to_json_file)
 
 
 def _new_client(spec: SearchSpec):
@@ -197,7 +191,6 @@ def _records_path(state_path: Path) -> Path:
 
 
 def _save_records(records: dict[int, TrialRecord], state_path: Path) -> None:
-    from omnidl.utils.io import atomic_write_json
     atomic_write_json(_records_path(state_path), [vars(r) for r in sorted(records.values(), key=lambda r: r.index)])
 
 

@@ -21,7 +21,7 @@ import math
 from pathlib import Path
 from typing import Any, Callable
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from omnidl.utils.io import atomic_write, atomic_write_text
 
@@ -34,24 +34,9 @@ log = logging.getLogger(__name__)
 def training_config_without_search(cfg: DictConfig) -> DictConfig:
     """A copy of ``cfg`` without the ``search`` node."""
     c = copy.deepcopy(cfg)
-    with open_struct(c):
+    with open_dict(c):
         c.pop("search", None)
     return c
-
-
-class open_struct:
-    """Context manager lifting OmegaConf struct mode on a config."""
-
-    def __init__(self, cfg: DictConfig):
-        self.cfg = cfg
-
-    def __enter__(self):
-        self.flag = OmegaConf.is_struct(self.cfg)
-        OmegaConf.set_struct(self.cfg, False)
-        return self.cfg
-
-    def __exit__(self, *exc):
-        OmegaConf.set_struct(self.cfg, self.flag)
 
 
 def _format(v: Any) -> str:
@@ -78,10 +63,10 @@ def _task_overrides() -> tuple[str | None, list[str]]:
     return hc.job.config_name, choices + keep
 
 
-def make_trial_config_fn(cfg: DictConfig, spec: SearchSpec, search_dir: Path) -> Callable[[dict, int], DictConfig]:
-    """Return ``fn(params, idx) -> DictConfig`` building one trial's training config."""
+def make_trial_config_fn(base: DictConfig, spec: SearchSpec, search_dir: Path) -> Callable[[dict, int], DictConfig]:
+    """Return ``fn(params, idx) -> DictConfig`` building one trial's training config from ``base`` (the
+    training config without its ``search`` node), through Hydra's compose API inside a Hydra app."""
     config_name, task = _task_overrides()
-    base = training_config_without_search(cfg)
 
     def trial_overrides(params: dict, idx: int) -> list[str]:
         out = list(spec.overrides) + [f"{k}={_format(v)}" for k, v in params.items()]
@@ -96,7 +81,7 @@ def make_trial_config_fn(cfg: DictConfig, spec: SearchSpec, search_dir: Path) ->
             return training_config_without_search(c)
         # outside a Hydra app (library use, tests): apply the overrides to a copy
         c = copy.deepcopy(base)
-        with open_struct(c):
+        with open_dict(c):
             for o in trial_overrides(params, idx):
                 key, val = o.split("=", 1)
                 OmegaConf.update(c, key.lstrip("+"), _parse(val),
@@ -135,7 +120,7 @@ def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dic
     restart = bool(cfg.search.get("restart", False))
     if train_fn is None:
         from omnidl.engine import train as train_fn  # type: ignore[no-redef]
-    build = make_trial_config_fn(cfg, spec, search_dir)
+    build = make_trial_config_fn(train_cfg, spec, search_dir)
 
     def evaluate(params: dict, idx: int) -> dict:
         trial_cfg = build(params, idx)
@@ -174,7 +159,7 @@ def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: Di
     loss = copy.deepcopy(train_cfg.get("loss"))
     if loss is None:
         raise ValueError("search: the training config has no 'loss' node to write the best weights into")
-    with open_struct(loss):
+    with open_dict(loss):
         for key, val in result.best_params.items():
             if key.startswith("loss."):
                 OmegaConf.update(loss, key[len("loss."):], val, force_add=True)
