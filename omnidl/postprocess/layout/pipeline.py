@@ -168,8 +168,9 @@ def _estimate_layout(rays: ColumnRays, corner_prob: np.ndarray, world: str = "at
     # heights (total least squares): nearly scale-independent, much steadier than per-wall directions
     gi = [j for j, k in enumerate(long_idx) if good[k]]
     wts = np.array([len(inliers[j]) for j in gi], float)
-    h_c0 = _weighted_median(fit.h_c[gi], wts)
-    h_f0 = _weighted_median(fit.h_f[gi], wts)
+    h_c0, h_f0 = _shared_heights(rays, np.r_[fit.h_c[gi], _weighted_median(fit.h_c[gi], wts)],
+                                 np.r_[fit.h_f[gi], _weighted_median(fit.h_f[gi], wts)],
+                                 [cols[long_idx[j]] for j in gi], thr)
     theta_tls = np.array([_short_wall_line(rays, cols[k], h_c0, h_f0)[0] for k in range(n_w)])
     if opt.directions == "tls":
         theta = np.where(np.isfinite(theta_tls), theta_tls, theta)
@@ -216,6 +217,60 @@ def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
     o = np.argsort(x[ok])
     cw = np.cumsum(w[ok][o])
     return float(x[ok][o][np.searchsorted(cw, 0.5 * cw[-1])])
+
+
+def _shared_heights(rays: ColumnRays, cand_c: np.ndarray, cand_f: np.ndarray, wall_cols: list[np.ndarray],
+                    thr: float) -> tuple[float, float]:
+    """The candidate heights ``(h_c, h_f)`` that explain the boundaries of *all* walls best.
+
+    A single wall constrains the scale weakly (a wall close to the rig circle seen through rounded
+    boundaries can fit a collapsed, much smaller room almost as well), so the per-wall RANSAC heights
+    are only candidates. For each candidate every wall gets its top-view total-least-squares line at
+    those heights (as :func:`_short_wall_line`), and the candidate with the smallest truncated
+    quadratic re-projection cost over all walls' columns (MSAC, threshold ``thr`` radians) wins.
+    """
+    ok = np.isfinite(cand_c) & np.isfinite(cand_f) & (cand_c > 0) & (cand_f < 0)
+    cand_c, cand_f = np.asarray(cand_c, float)[ok], np.asarray(cand_f, float)[ok]
+    if len(cand_c) <= 1:
+        return (float(cand_c[0]), float(cand_f[0])) if len(cand_c) else (math.nan, math.nan)
+    idx = np.concatenate(wall_cols)
+    wall = np.concatenate([np.full(len(c), k) for k, c in enumerate(wall_cols)])
+    n_w = len(wall_cols)
+    lat_c, lat_f = rays.elevations()
+    o, b = rays.origin[idx, :2], rays.horizontal[idx]
+    tc, tf = np.tan(lat_c[idx]), np.tan(lat_f[idx])
+    K = len(cand_c)
+    # top-view points of every column at every candidate's heights: (K, 2n, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.concatenate([cand_c[:, None] / tc[None], cand_f[:, None] / tf[None]], 1)
+    use = np.isfinite(s) & (s > 0)
+    oo, bb, ww = np.concatenate([o, o]), np.concatenate([b, b]), np.concatenate([wall, wall])
+    P = oo[None] + np.where(use, s, 0.0)[..., None] * bb[None]
+    wgt = use.astype(float)
+    key = (np.arange(K)[:, None] * n_w + ww[None]).ravel()
+
+    def wsum(v):
+        return np.bincount(key, (wgt * v).ravel(), minlength=K * n_w).reshape(K, n_w)
+    cnt = np.maximum(wsum(np.ones_like(wgt)), 1e-12)
+    mx, my = wsum(P[..., 0]) / cnt, wsum(P[..., 1]) / cnt
+    sxx = wsum(P[..., 0] ** 2) / cnt - mx ** 2
+    syy = wsum(P[..., 1] ** 2) / cnt - my ** 2
+    sxy = wsum(P[..., 0] * P[..., 1]) / cnt - mx * my
+    th = 0.5 * np.arctan2(2 * sxy, sxx - syy)                       # principal direction of each wall
+    nx, ny = -np.sin(th), np.cos(th)
+    d = nx * mx + ny * my                                           # (K, n_w)
+    # re-projection of every column on its wall's line at the candidate heights
+    nxw, nyw, dw = nx[:, wall], ny[:, wall], d[:, wall]              # (K, n)
+    nb = nxw * b[None, :, 0] + nyw * b[None, :, 1]
+    no = nxw * o[None, :, 0] + nyw * o[None, :, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rng_ = (dw - no) / nb
+        ec = np.abs(np.arctan2(cand_c[:, None], rng_) - lat_c[idx][None])
+        ef = np.abs(np.arctan2(cand_f[:, None], rng_) - lat_f[idx][None])
+    e2 = np.where(np.isfinite(ec) & (rng_ > 0), np.minimum(ec, thr) ** 2, thr ** 2) + \
+        np.where(np.isfinite(ef) & (rng_ > 0), np.minimum(ef, thr) ** 2, thr ** 2)
+    k = int(np.argmin(e2.sum(1)))
+    return float(cand_c[k]), float(cand_f[k])
 
 
 def _check(verts: np.ndarray, h_c: float, h_f: float, opt: LayoutOptions) -> str | None:
@@ -487,12 +542,12 @@ def _manhattan(rays, corners_u, theta, good, cols, opt, camera_height):
             near, far_th, far_d = P1, th[j], d[j]
             dp = -math.sin(th_perp) * near[0] + math.cos(th_perp) * near[1]
             Q = line_intersection(th_perp, dp, far_th, far_d)
-            transitions.append([(P1, False), (Q, True)])
+            transitions.append([(P1, False), (Q, True, False)])   # Q: hidden, off the corner ray
         else:
             near = P2
             dp = -math.sin(th_perp) * near[0] + math.cos(th_perp) * near[1]
             Q = line_intersection(th_perp, dp, th[k], d[k])
-            transitions.append([(Q, True), (P2, False)])
+            transitions.append([(Q, True, False), (P2, False)])
         n_occ += 1
     verts, occl, problem = _assemble(rays, corners_u, th, d, cols, transitions, opt, manhattan=True)
     return verts, occl, h_c, h_f, problem, {"n_occlusions": n_occ, "orientation_deg": math.degrees(th0)}
