@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.nn.ffc import FourierBlock
+from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_block
 from omnidl.cameras import Equirectangular
 from omnidl.nn.projected_conv import as_camera
 from omnidl.nn.wconv import ConvNormAct, WConv
@@ -111,14 +112,16 @@ class FusionHead(nn.Module):
                                padding="circular", camera=out_camera)
 
     def forward(self, maps: Sequence[Tensor]) -> Tensor:
-        size = maps[-1].shape[-2:]
-        acc = None
-        for i, (med, d) in enumerate(zip(self.mediators, maps)):
-            m = med(d)
-            if m.shape[-2:] != size:
-                m = F.interpolate(m, size=size, mode="bilinear", align_corners=True)
-            acc = m if i == 0 else torch.addcmul(acc, self.branch_weights[i - 1], m)   # acc + w_i m_i, one pass
-        return self.out(acc)
+        B, _, H, W = maps[-1].shape
+        blocked = can_block(self.out.conv)          # not for a distortion-aware output conv
+        mediated = [med.row_source(d) if blocked and not self.training and d.shape[-2:] == (H, W) else med(d)
+                    for med, d in zip(self.mediators, maps)]
+        weights = [None] + list(self.branch_weights.unbind())
+        fused = UpsampleSum(mediated, weights, size=(H, W))      # sum_i w_i up(m_i), by row blocks
+        if not blocked:
+            return self.out(fused.full())
+        y = blocked_conv(self.out.conv, fused.rows, H, rows_per_block(B, self.out.conv.in_channels, W))
+        return self.out.act(self.out.norm(y))
 
 
 class FreDSNet(nn.Module):

@@ -99,14 +99,42 @@ class CircularConv2d(nn.Conv2d):
             raise ValueError(f"CircularConv2d: padding must be an int, a (pad_h, pad_w) tuple or 'same', got {padding!r}")
         self.wrap_padding = (padding, padding) if isinstance(padding, int) else tuple(padding)
 
-    def forward(self, x: Tensor) -> Tensor:
+    def _conv_forward(self, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+        """The convolution with the given ``weight``/``bias`` (``nn.Conv2d.forward`` calls this with its own;
+        :class:`omnidl.nn.wconv.ConvNormAct` with BatchNorm folded in)."""
         ph, pw = self.wrap_padding
+        if (pw and self.stride == (1, 1) and 2 * pw == self.dilation[1] * (self.kernel_size[1] - 1)
+                and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL):
+            return wrapped_conv2d(x, weight, bias, (ph, pw), self.dilation, self.groups)
         if pw:
             x = pad_panorama(x, pw)
-        return F.conv2d(x, self.weight, self.bias, self.stride, (ph, 0), self.dilation, self.groups)
+        return F.conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", wrap_padding={self.wrap_padding} (horizontal wrap)"
+
+
+#: inputs with at least this many elements skip the wrapped copy of the whole map (see :func:`wrapped_conv2d`)
+BORDER_FIX_NUMEL = 1 << 20
+
+
+def wrapped_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, padding: tuple[int, int],
+                  dilation: tuple[int, int], groups: int) -> Tensor:
+    """Stride-1 "same" convolution with a horizontal wrap (``pw`` columns) and ``ph`` zero rows, without
+    copying ``x`` into a padded buffer (``x`` at least ``4 pw`` columns wide).
+
+    The convolution runs zero-padded (no copy: oneDNN pads internally); then only the ``pw`` border
+    columns on each side, the ones that should have seen the other side of the panorama, are recomputed
+    from one thin wrapped strip (columns ``W-2pw .. W-1`` then ``0 .. 2pw-1``) and written over. Same
+    result as padding first; on large maps this saves a full copy (and its page faults) per convolution.
+    """
+    ph, pw = padding
+    y = F.conv2d(x, weight, bias, 1, (ph, pw), dilation, groups)
+    strip = F.conv2d(torch.cat([x[..., -2 * pw:], x[..., :2 * pw]], dim=-1), weight, bias, 1, (ph, 0),
+                     dilation, groups)                   # (..., 2pw): right border outputs, then left ones
+    y[..., :pw] = strip[..., pw:]
+    y[..., -pw:] = strip[..., :pw]
+    return y
 
 
 def make_conv2d(in_channels: int, out_channels: int, kernel_size: int = 3, *, stride: int = 1,

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from typing import Any, Callable, Literal
 
+import torch
 import torch.nn as nn
+import torch.nn.functional as F
 from torch import Tensor
 
 from .padding import PaddingMode, make_conv2d
@@ -43,7 +45,34 @@ class ConvNormAct(nn.Module):
         self.act = make_activation(activation, out_channels)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.act(self.norm(self.conv(x)))
+        folded = self._folded_params(x)
+        y = self.norm(self.conv(x)) if folded is None else self.conv._conv_forward(x, *folded)
+        if type(self.act) is nn.ReLU:
+            return F.relu_(y)          # y is a fresh conv/BN output that no backward needs: no extra buffer
+        return self.act(y)
+
+    def _folded_params(self, x: Tensor) -> tuple[Tensor, Tensor] | None:
+        """In eval mode, the convolution's weight and bias with the BatchNorm folded in, when that is cheaper
+        than normalising the output (weights smaller than the output map); ``None`` otherwise.
+
+        ``conv(x, w * s, (b - mean) * s + beta)`` with ``s = gamma / sqrt(var + eps)`` equals
+        ``BN(conv(x, w, b))`` with running statistics; it is recomputed from the live parameters on every
+        call (differentiable, never stale) and saves one pass and one buffer of the size of the output.
+        """
+        conv, bn = self.conv, self.norm
+        if (self.training or not isinstance(bn, nn.BatchNorm2d) or bn.running_var is None
+                or not isinstance(conv, nn.Conv2d) or conv.padding_mode != "zeros"):
+            return None
+        out_numel = x.numel() // max(1, x.shape[1]) * conv.out_channels // (conv.stride[0] * conv.stride[1])
+        if conv.weight.numel() > out_numel:
+            return None
+        scale = torch.rsqrt(bn.running_var + bn.eps)
+        if bn.weight is not None:
+            scale = scale * bn.weight
+        bias = -bn.running_mean * scale if conv.bias is None else (conv.bias - bn.running_mean) * scale
+        if bn.bias is not None:
+            bias = bias + bn.bias
+        return conv.weight * scale.reshape(-1, 1, 1, 1), bias
 
 
 class WConv(nn.Module):
@@ -75,3 +104,15 @@ class WConv(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         return self.expand(self.drop2(self.conv(self.drop1(self.reduce(x)))))
+
+    def row_source(self, x: Tensor) -> Callable[[int, int], Tensor]:
+        """Eval mode only: ``f(a, b)`` = ``self(x)[:, :, a:b]``, with the wide last 1x1 stage computed per call.
+
+        Everything up to the bottleneck runs once (``hidden`` channels); the expansion to ``out_channels``
+        is pointwise, so rows can be produced block by block (see :mod:`omnidl.nn.fusion`) and the
+        full-width output never exists at once. In training mode BatchNorm needs the whole batch.
+        """
+        if self.training:
+            raise RuntimeError("WConv.row_source needs eval mode (BatchNorm statistics of the whole map otherwise)")
+        hidden = self.drop2(self.conv(self.drop1(self.reduce(x))))
+        return lambda a, b: self.expand(hidden[:, :, a:b])

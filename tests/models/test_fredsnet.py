@@ -1,4 +1,6 @@
 """FreDSNet: outputs, size checks, ablation options, parameter count, backbone weights, official converter."""
+import copy
+
 import pytest
 import torch
 import torch.nn as nn
@@ -245,17 +247,33 @@ def test_hydra_configs_compose_and_build(overrides):
     assert {"mre", "delta1", "miou", "macc"} <= set(metrics.compute())
 
 
-def test_fusion_head_is_the_weighted_sum_of_upsampled_maps():
+@pytest.mark.parametrize("train", [False, True])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_fusion_head_is_the_weighted_sum_of_upsampled_maps(train, channels_last, monkeypatch):
+    """The row-blocked head (omnidl.nn.fusion) equals the literal formula, in eval and training, with gradients."""
+    import omnidl.nn.fusion as fusion
     from omnidl.models.fredsnet import FusionHead
+    monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)          # several row blocks and deferred width passes
     torch.manual_seed(4)
-    head = FusionHead([8, 6], 4, 3, activation="prelu", out_activation="none", out_norm=False,
-                      wconv_kwargs={}).eval()
+    head = FusionHead([8, 6, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
+                      wconv_kwargs={}).double().train(train)
     with torch.no_grad():
-        head.branch_weights.fill_(-0.7)
-        maps = [torch.randn(1, 8, 4, 8), torch.randn(1, 6, 8, 16)]
-        m0 = F.interpolate(head.mediators[0](maps[0]), size=(8, 16), mode="bilinear", align_corners=True)
-        expect = head.out(m0 - 0.7 * head.mediators[1](maps[1]))
-        torch.testing.assert_close(head(maps), expect)
+        head.branch_weights.copy_(torch.tensor([-0.7, 1.3]))
+    maps = [torch.randn(2, 8, 4, 8), torch.randn(2, 6, 8, 16), torch.randn(2, 4, 16, 32)]
+    maps = [m.double().requires_grad_() for m in maps]
+    if channels_last:
+        head = head.to(memory_format=torch.channels_last)
+    literal = copy.deepcopy(head)
+    up = [F.interpolate(med(d), size=(16, 32), mode="bilinear", align_corners=True)
+          for med, d in zip(literal.mediators, maps)]
+    expect = literal.out(up[0] + literal.branch_weights[0] * up[1] + literal.branch_weights[1] * up[2])
+    got = head([m.contiguous(memory_format=torch.channels_last) if channels_last else m for m in maps])
+    torch.testing.assert_close(got, expect)
+    g = torch.randn_like(expect)
+    ga = torch.autograd.grad((got * g).sum(), maps + list(head.parameters()))
+    gb = torch.autograd.grad((expect * g).sum(), maps + list(literal.parameters()))
+    for a, b in zip(ga, gb):
+        torch.testing.assert_close(a, b)
 
 
 def test_channels_last_matches_contiguous_layout():

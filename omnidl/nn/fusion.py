@@ -1,0 +1,191 @@
+"""Weighted sums of bilinearly up-sampled maps, evaluated by row blocks (FreDSNet's task branches).
+
+A FreDSNet branch computes ``conv(sum_i w_i up(m_i))`` where every ``m_i (B, C, h_i, w_i)`` is
+up-sampled (bilinear, ``align_corners=True``) to the size ``(H, W)`` of the largest map. Done
+literally, every term writes a full-resolution map twice (the up-sampled map, then the running sum):
+at 512x256 with 128 channels that is 67 MB per buffer, and on CPU the memory traffic and the page
+faults of such buffers cost more than the arithmetic.
+
+Bilinear up-sampling is separable, ``up(m) = A_h m A_w^T``. :class:`UpsampleSum` resizes each map
+along the width only (``h_i`` rows instead of ``H``); any block of output rows is then one small
+matrix product per map with the block's rows of its ``(H, h_i)`` interpolation matrix, restricted to
+the input rows they touch. :func:`blocked_conv` runs a "same" stride-1 convolution over such a
+row-addressable map block by block (with a halo), so the full-resolution sum never exists at once.
+Results equal ``F.interpolate`` + sum (+ conv) up to float rounding; gradients flow to the maps,
+the weights and the convolution.
+"""
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch import Tensor
+
+from .padding import CircularConv2d, wrapped_conv2d
+
+#: ``f(a, b) -> (B, C, b - a, W)``: rows ``a:b`` of a full-size map, computed on demand
+RowSource = Callable[[int, int], Tensor]
+
+#: bytes of one row block of the full-resolution sum (fits in a core's L2 cache on current CPUs)
+BLOCK_BYTES = 4 << 20
+
+
+def interpolation_matrix(n_out: int, n_in: int, *, dtype: torch.dtype = torch.float32,
+                         device: torch.device | str | None = None) -> Tensor:
+    """``(n_out, n_in)`` matrix of 1-D linear interpolation with ``align_corners=True``.
+
+    Row ``r`` samples position ``r (n_in - 1) / (n_out - 1)`` of the input: weight ``1 - f`` on
+    ``floor`` and ``f`` on the next sample (``F.interpolate``'s rule).
+    """
+    if n_out < 1 or n_in < 1:
+        raise ValueError(f"interpolation_matrix: sizes must be >= 1, got {n_out} x {n_in}")
+    scale = (n_in - 1) / (n_out - 1) if n_out > 1 else 0.0
+    src = torch.arange(n_out, dtype=torch.float64) * scale
+    i0 = src.floor().long().clamp(max=n_in - 1)
+    i1 = (i0 + 1).clamp(max=n_in - 1)
+    f = src - i0
+    A = torch.zeros(n_out, n_in, dtype=torch.float64)
+    rows = torch.arange(n_out)
+    A.index_put_((rows, i0), 1.0 - f, accumulate=True)
+    A.index_put_((rows, i1), f, accumulate=True)
+    return A.to(dtype=dtype, device=device)
+
+
+class UpsampleSum:
+    """``S = sum_i w_i * F.interpolate(m_i, (H, W), mode="bilinear", align_corners=True)``, by rows.
+
+    Args:
+        maps: ``(B, C, h_i, w_i)`` tensors with the same ``B, C``, dtype and device (contiguous or
+            channels-last; blocks come back in the memory format of the first one). A full-size map may
+            instead be a *row source*, a callable ``f(a, b) -> (B, C, b - a, W)`` giving its rows ``a:b``,
+            so that it too is only ever materialised block by block (``size`` is then required).
+        weights: one per map: a scalar tensor (``()`` or ``(1,)``, may require grad), a number, or
+            ``None`` for 1.
+        size: ``(H, W)``; default the size of the largest map.
+
+    ``rows(a, b)`` returns ``S[:, :, a:b]`` as ``(B, C, b - a, W)``; ``full()`` is ``rows(0, H)``.
+    """
+
+    def __init__(self, maps: Sequence[Tensor | RowSource], weights: Sequence[Tensor | float | None],
+                 size: tuple[int, int] | None = None) -> None:
+        if not maps or len(maps) != len(weights):
+            raise ValueError(f"UpsampleSum: need one weight per map, got {len(maps)} maps, {len(weights)} weights")
+        tensors = [m for m in maps if isinstance(m, Tensor)]
+        if not tensors or (size is None and len(tensors) < len(maps)):
+            raise ValueError("UpsampleSum: need at least one tensor map, and `size` when some maps are row sources")
+        B, C = tensors[0].shape[:2]
+        if any(m.dim() != 4 or m.shape[:2] != (B, C) for m in tensors):
+            raise ValueError(f"UpsampleSum: maps must be (B, C, h, w) with the same B, C; got "
+                             f"{[tuple(m.shape) for m in tensors]}")
+        H, W = size if size is not None else max((tuple(m.shape[-2:]) for m in maps), key=lambda s: s[0] * s[1])
+        self.shape = (B, C, int(H), int(W))
+        self.channels_last = tensors[0].is_contiguous(memory_format=torch.channels_last) and C > 1
+        # (rows (N, h, L) or a row source, matrix (H, h) or None at full size, weight, width)
+        self.terms: list[tuple] = []
+        for m, w in zip(maps, weights):
+            if not isinstance(m, Tensor):                 # full-size row source, evaluated per block
+                self.terms.append((m, None, w, W))
+                continue
+            h = m.shape[-2]
+            if m.shape[-1] != W and (h == H or m.numel() * W // m.shape[-1] * m.element_size() <= 2 * BLOCK_BYTES):
+                # width pass now (only h rows, a small buffer); larger maps get it per block in rows()
+                m = F.interpolate(m, size=(h, W), mode="bilinear", align_corners=True)
+            A = None if h == H else interpolation_matrix(H, h, dtype=m.dtype, device=m.device)
+            self.terms.append((self._flat(m), A, w, m.shape[-1]))
+
+    def _flat(self, m: Tensor) -> Tensor:
+        """``(B, C, h, w)`` -> ``(B, h, w*C)`` (channels-last, a view) or ``(B*C, h, w)``."""
+        B, C, h, w = m.shape
+        return m.permute(0, 2, 3, 1).reshape(B, h, w * C) if self.channels_last else m.reshape(B * C, h, w)
+
+    def _unflat(self, flat: Tensor) -> Tensor:
+        """Inverse of :meth:`_flat`."""
+        B, C = self.shape[:2]
+        if self.channels_last:
+            return flat.view(B, flat.shape[1], flat.shape[2] // C, C).permute(0, 3, 1, 2)
+        return flat.view(B, C, flat.shape[1], flat.shape[2])
+
+    def rows(self, a: int, b: int) -> Tensor:
+        """Rows ``a:b`` of the sum: ``(B, C, b - a, W)``."""
+        W = self.shape[3]
+        acc = None
+        for flat, A, w, width in self.terms:
+            if A is None:                                 # a full-size map: its rows
+                term = flat[:, a:b] if isinstance(flat, Tensor) else self._flat(flat(a, b))
+            else:                                         # height pass on the rows it needs
+                block = A[a:b]
+                used = block.any(0).nonzero()
+                lo, hi = int(used[0]), int(used[-1]) + 1
+                block = block[:, lo:hi] if w is None else block[:, lo:hi] * w
+                block = block.expand(flat.shape[0], -1, -1)
+                if width == W:
+                    acc = torch.bmm(block, flat[:, lo:hi]) if acc is None else \
+                        torch.baddbmm(acc, block, flat[:, lo:hi])
+                    continue
+                term = F.interpolate(self._unflat(torch.bmm(block, flat[:, lo:hi])), size=(b - a, W),
+                                     mode="bilinear", align_corners=True)     # deferred width pass
+                term, w = self._flat(term), None                              # (weight already applied)
+            if acc is None:
+                acc = term.clone() if w is None else term * w
+            elif isinstance(w, Tensor):
+                acc = torch.addcmul(acc, term, w)
+            else:
+                acc = acc.add(term, alpha=1.0 if w is None else float(w))
+        assert acc is not None
+        return self._unflat(acc)
+
+    def full(self) -> Tensor:
+        """The whole sum ``(B, C, H, W)``."""
+        return self.rows(0, self.shape[2])
+
+
+def upsample_sum(maps: Sequence[Tensor], weights: Sequence[Tensor | float | None],
+                 size: tuple[int, int] | None = None) -> Tensor:
+    """``sum_i w_i * F.interpolate(m_i, size, mode="bilinear", align_corners=True)`` (see :class:`UpsampleSum`)."""
+    return UpsampleSum(maps, weights, size).full()
+
+
+def can_block(conv: nn.Module) -> bool:
+    """Whether :func:`blocked_conv` can run ``conv``: a stride-1, "same" ``nn.Conv2d`` with zero padding or a
+    :class:`CircularConv2d` (position-dependent convolutions such as ``ProjectedConv2d`` cannot)."""
+    if type(conv) not in (nn.Conv2d, CircularConv2d) or conv.stride != (1, 1) or conv.padding_mode != "zeros":
+        return False
+    pad = conv.wrap_padding if isinstance(conv, CircularConv2d) else conv.padding
+    if isinstance(pad, str):
+        return False
+    return all(2 * p == d * (k - 1) for p, d, k in zip(pad, conv.dilation, conv.kernel_size))
+
+
+def blocked_conv(conv: nn.Module, rows: Callable[[int, int], Tensor], height: int, block_rows: int) -> Tensor:
+    """``conv(X)`` for a map ``X`` that is only ever materialised as row blocks ``rows(a, b) (B, C, b - a, W)``.
+
+    Each block is computed with the ``pad_h`` halo rows the convolution needs (zeros beyond the image),
+    convolved without vertical padding, and the output blocks are concatenated: ``(B, C_out, height, W)``.
+    ``conv`` must satisfy :func:`can_block`.
+    """
+    if not can_block(conv):
+        raise ValueError(f"blocked_conv: {conv!r} is not a stride-1 'same' convolution")
+    ph, pw = conv.wrap_padding if isinstance(conv, CircularConv2d) else conv.padding
+    wrap = isinstance(conv, CircularConv2d)
+    out = []
+    for r0 in range(0, height, block_rows):
+        r1 = min(height, r0 + block_rows)
+        a, b = max(0, r0 - ph), min(height, r1 + ph)
+        x = rows(a, b)
+        if a > r0 - ph or b < r1 + ph:
+            x = F.pad(x, (0, 0, a - (r0 - ph), (r1 + ph) - b))
+        if wrap and pw:
+            out.append(wrapped_conv2d(x, conv.weight, conv.bias, (0, pw), conv.dilation, conv.groups))
+        else:
+            out.append(F.conv2d(x, conv.weight, conv.bias, 1, (0, pw), conv.dilation, conv.groups))
+    return torch.cat(out, dim=2) if len(out) > 1 else out[0]
+
+
+def rows_per_block(batch: int, channels: int, width: int, element_size: int = 4) -> int:
+    """Rows of a ``(batch, channels, rows, width)`` block of about :data:`BLOCK_BYTES`, at least 8."""
+    return max(8, BLOCK_BYTES // max(1, batch * channels * width * element_size))
+
+
+__all__ = ["interpolation_matrix", "UpsampleSum", "upsample_sum", "can_block", "blocked_conv", "rows_per_block"]
