@@ -9,7 +9,9 @@ Parameters ``x = (h_c, h_f, x_1, y_1, ..., x_M, y_M)``; the polygon's segment ``
   divided by ``(pi / H) * s`` (``s`` the initial horizontal range), weight ``side_weight``;
 * out-of-plane penalty: the azimuth of each corner minus the azimuth of its corner ray, divided by
   ``2 pi / W`` (weight ``corner_weight``, ``occluded_weight`` for corners created by occlusion
-  handling, which are only defined by their corner ray plane);
+  handling on a corner ray, which are only defined by that ray's plane; a hidden corner off every
+  corner ray, e.g. the far end of an inserted Manhattan wall, has no penalty (NaN azimuth) and is
+  held by the Manhattan term);
 * Manhattan: ``manhattan_weight * cos`` of the angle between consecutive segments.
 
 Solved with :func:`scipy.optimize.least_squares` (TRF, bounds ``0 < h_c``, ``h_f < 0``, corners

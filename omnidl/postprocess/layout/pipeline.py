@@ -4,11 +4,14 @@
 
 1. corner columns = peaks of the corner probability; the columns between consecutive corners
    (minus a margin) form the walls;
-2. per-wall RANSAC with the single-wall solver (batched hypotheses) and an inlier refit;
+2. per-wall RANSAC with the single-wall solver (batched hypotheses) and an inlier refit; the shared
+   heights are the per-wall candidate that explains the boundaries of all walls best;
 3. Manhattan: the room orientation is estimated (4-fold circular mean), walls labelled, coplanar
    neighbours merged, the Manhattan layout solver (Eq. 5.8) gives one direction, the shared
    heights and every wall offset; two consecutive walls with the same label reveal an occluded
-   wall, inserted perpendicular through the nearer corner-ray point.
+   wall, inserted perpendicular through the nearer corner-ray point (exact: the hidden wall goes
+   through the visible occluding corner); two perpendicular walls whose intersection is off their
+   corner ray hide two or more walls, closed by the smallest consistent room (unobservable).
    Atlanta: wall directions from RANSAC, the Atlanta solver (Eq. 5.9) gives the heights and the
    offsets; short walls get their line from the top-view boundary points at the solved heights;
    corners are the closest points between the wall lines and the corner rays, and two distinct
@@ -368,7 +371,8 @@ def _assemble(rays, corners_u, th, d, cols, transitions, opt, manhattan):
     """Vertices, occlusion flags and the adjustment problem from per-wall lines and transitions.
 
     ``transitions[k]`` describes the corner between wall ``k`` and ``k+1``: a list of
-    ``(point (2,), occluded)`` tuples (one normal corner or two points of an occlusion).
+    ``(point (2,), occluded[, on_ray])`` tuples (one normal corner, or the points of an occlusion);
+    ``on_ray=False`` marks a hidden corner that is not on the corner ray (no out-of-plane penalty).
     The corner between wall ``k`` and ``k+1`` is corner column ``corners_u[k+1]``.
     """
     n = len(th)

@@ -1,0 +1,27 @@
+"""Acceptance study helpers: hidden-wall runs and a tiny study run."""
+import math
+
+import numpy as np
+
+from omnidl.postprocess.layout.acceptance import hidden_run, run_study, to_markdown
+from omnidl.postprocess.layout.simulate import Room
+
+
+def test_hidden_run_counts_consecutive_walls_no_column_sees():
+    box = Room(np.array([[-2.0, -2.0], [3.0, -2.0], [3.0, 2.5], [-2.0, 2.5]]), 1.2, -1.4)
+    assert hidden_run(box, 512, 0.8) == 0
+    one = Room(np.array([[-1.5, -5.0], [6.5, -5.0], [6.5, -1.5], [2.3, -1.5], [2.3, 2.0], [-1.5, 2.0]]), 1.2, -1.4)
+    assert hidden_run(one, 512, 0.8) == 1
+    two = Room(np.array([[-1.5, -5.5], [6.5, -5.5], [6.5, -2.0], [2.3, -2.0], [2.3, 1.5], [-1.5, 1.5]]), 1.2, -1.4)
+    assert hidden_run(two, 512, 0.8) == 2
+
+
+def test_tiny_study_reports_every_room():
+    rows = run_study(3, width=256, progress=False)
+    assert [(r["world"], r["boundaries"]) for r in rows] == [
+        ("manhattan", "sub-pixel"), ("manhattan", "rounded"), ("atlanta", "sub-pixel"), ("atlanta", "rounded")]
+    for r in rows:
+        assert r["rooms"] == 3 and r["failed"] == 0
+        assert math.isfinite(r["ce_all"]) and 0 <= r["iou_3d_all"] <= 100
+    md = to_markdown(rows, 256, 1.0)
+    assert md.count("\n| manhattan |") == 2 and md.count("\n| atlanta |") == 2 and "CE all" in md
