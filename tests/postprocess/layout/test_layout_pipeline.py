@@ -107,6 +107,11 @@ def test_manhattan_two_hidden_walls_give_the_smallest_consistent_room():
     assert polygon_intersection_area(P, poly) == pytest.approx(abs(polygon_area(P)), rel=1e-3)
     _, iou = _score(lay, room)
     assert iou > 0.98
+    # the hidden walls really are unobservable: a deeper wing gives the very same input
+    deeper = Room(poly + np.array([[0, 0], [1.0, 0], [1.0, 0], [0, 0], [0, 0], [0, 0]]), 1.2, -1.4)
+    rays2, prob2 = simulate_columns(deeper, 1024, 512, 0.8)
+    assert np.allclose(rays2.ceiling, rays.ceiling, rtol=0, atol=1e-12)
+    assert np.allclose(rays2.floor, rays.floor, rtol=0, atol=1e-12) and np.array_equal(prob2, prob)
 
 
 def test_atlanta_occlusion_wall_in_corner_ray_plane():
