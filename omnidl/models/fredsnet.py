@@ -120,7 +120,10 @@ class FusionHead(nn.Module):
         fused = UpsampleSum(mediated, weights, size=(H, W))      # sum_i w_i up(m_i), by row blocks
         if not blocked:
             return self.out(fused.full())
-        y = blocked_conv(self.out.conv, fused.rows, H, rows_per_block(B, self.out.conv.in_channels, W))
+        # blocks pay off without autograd; with it every full-size buffer is kept anyway, and the backward of
+        # each block's row slices would write full-size gradient buffers: one block then
+        block = rows_per_block(B, self.out.conv.in_channels, W) if not torch.is_grad_enabled() else H
+        y = blocked_conv(self.out.conv, fused.rows, H, block)
         return self.out.act(self.out.norm(y))
 
 

@@ -161,25 +161,24 @@ def can_block(conv: nn.Module) -> bool:
 def blocked_conv(conv: nn.Module, rows: Callable[[int, int], Tensor], height: int, block_rows: int) -> Tensor:
     """``conv(X)`` for a map ``X`` that is only ever materialised as row blocks ``rows(a, b) (B, C, b - a, W)``.
 
-    Each block is computed with the ``pad_h`` halo rows the convolution needs (zeros beyond the image),
-    convolved without vertical padding, and the output blocks are concatenated: ``(B, C_out, height, W)``.
+    Each block is computed with the ``pad_h`` halo rows the convolution needs, convolved with vertical zero
+    padding (exact at the image's top and bottom, and only the halo's outputs, which are dropped, see it
+    elsewhere), and the output blocks are concatenated: ``(B, C_out, height, W)``.
     ``conv`` must satisfy :func:`can_block`.
     """
     if not can_block(conv):
         raise ValueError(f"blocked_conv: {conv!r} is not a stride-1 'same' convolution")
     ph, pw = conv.wrap_padding if isinstance(conv, CircularConv2d) else conv.padding
-    wrap = isinstance(conv, CircularConv2d)
     out = []
     for r0 in range(0, height, block_rows):
         r1 = min(height, r0 + block_rows)
         a, b = max(0, r0 - ph), min(height, r1 + ph)
         x = rows(a, b)
-        if a > r0 - ph or b < r1 + ph:
-            x = F.pad(x, (0, 0, a - (r0 - ph), (r1 + ph) - b))
-        if wrap and pw:
-            out.append(wrapped_conv2d(x, conv.weight, conv.bias, (0, pw), conv.dilation, conv.groups))
+        if isinstance(conv, CircularConv2d) and pw and not torch.is_grad_enabled() and x.shape[-1] >= 4 * pw:
+            y = wrapped_conv2d(x, conv.weight, conv.bias, (ph, pw), conv.dilation, conv.groups)   # no padded copy
         else:
-            out.append(F.conv2d(x, conv.weight, conv.bias, 1, (0, pw), conv.dilation, conv.groups))
+            y = conv(x)
+        out.append(y if (a, b) == (r0, r1) else y[:, :, r0 - a:r1 - a])
     return torch.cat(out, dim=2) if len(out) > 1 else out[0]
 
 

@@ -104,7 +104,7 @@ class CircularConv2d(nn.Conv2d):
         :class:`omnidl.nn.wconv.ConvNormAct` with BatchNorm folded in)."""
         ph, pw = self.wrap_padding
         if (pw and self.stride == (1, 1) and 2 * pw == self.dilation[1] * (self.kernel_size[1] - 1)
-                and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL):
+                and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL and not torch.is_grad_enabled()):
             return wrapped_conv2d(x, weight, bias, (ph, pw), self.dilation, self.groups)
         if pw:
             x = pad_panorama(x, pw)
@@ -114,7 +114,8 @@ class CircularConv2d(nn.Conv2d):
         return super().extra_repr() + f", wrap_padding={self.wrap_padding} (horizontal wrap)"
 
 
-#: inputs with at least this many elements skip the wrapped copy of the whole map (see :func:`wrapped_conv2d`)
+#: inputs with at least this many elements skip the wrapped copy of the whole map when no gradient is recorded
+#: (see :func:`wrapped_conv2d`; with autograd the copy is cheaper: the strips' backward writes full-size buffers)
 BORDER_FIX_NUMEL = 1 << 20
 
 
