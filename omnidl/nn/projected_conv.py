@@ -201,17 +201,19 @@ class ProjectedConv2d(nn.Conv2d):
             return "fast" if self.groups == 1 else "torchvision"
         return self.backend
 
-    def forward(self, x: Tensor) -> Tensor:
+    def _conv_forward(self, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+        """The projected convolution of ``x`` with the given ``weight``/``bias`` (``forward`` passes its own;
+        :class:`omnidl.nn.wconv.ConvNormAct` passes them with BatchNorm folded in)."""
         if self.camera is None:
-            return super().forward(x)
+            return super()._conv_forward(x, weight, bias)
         if x.dim() != 4 or x.shape[1] != self.in_channels:
             raise ValueError(f"ProjectedConv2d expects (B, {self.in_channels}, H, W) input, got {tuple(x.shape)}")
         key = self.geometry_key(tuple(x.shape[-2:]))
         if self.resolved_backend() == "fast":
             plan = get_plan(key, x.device, x.dtype)
-            return fixed_offset_conv2d(x, self.weight, self.bias, plan, positions=self.chunk_positions)
+            return fixed_offset_conv2d(x, weight, bias, plan, positions=self.chunk_positions)
         off, mask = get_offsets(key, x.device, x.dtype)
-        return deform_conv2d_reference(x, self.weight, self.bias, off, mask, self.stride, self._padding_pair(),
+        return deform_conv2d_reference(x, weight, bias, off, mask, self.stride, self._padding_pair(),
                                        self.dilation, wrap=key[6])
 
     def extra_repr(self) -> str:

@@ -104,11 +104,14 @@ def test_large_circular_conv_recomputes_borders_instead_of_padding(dilation, mon
         torch.testing.assert_close(a, b)
 
 
-@pytest.mark.parametrize("padding_mode", ["zeros", "circular"])
+@pytest.mark.parametrize("padding_mode", ["zeros", "circular", "equi"])
 def test_conv_norm_act_folds_batchnorm_in_eval(padding_mode):
+    from omnidl.cameras import Equirectangular
     from omnidl.nn.wconv import ConvNormAct
     torch.manual_seed(5)
-    block = ConvNormAct(3, 6, 3, padding=padding_mode, activation="relu").double()
+    camera = Equirectangular(width=10, height=8) if padding_mode == "equi" else None
+    block = ConvNormAct(3, 6, 3, padding="zeros" if camera else padding_mode, activation="relu",
+                        camera=camera).double()
     block.norm.running_mean.normal_()
     block.norm.running_var.uniform_(0.5, 2.0)
     nn.init.normal_(block.norm.weight)
