@@ -181,8 +181,9 @@ def chunk_positions(plan: SamplingPlan, channels: int, element_size: int) -> int
 
 
 def _is_channels_last(t: Tensor) -> bool:
-    """True when ``t (B, C, H, W)`` is stored channels-last (and not also plain contiguous)."""
-    return t.is_contiguous(memory_format=torch.channels_last) and not t.is_contiguous()
+    """True when ``t (B, C, H, W)`` stores channels innermost (channels-last, also a channel slice of a
+    channels-last map, which is not contiguous in either format) and is not plain contiguous."""
+    return t.dim() == 4 and t.shape[1] > 1 and t.stride(1) == 1 and not t.is_contiguous()
 
 
 # -- CPU execution: chunks run on single-threaded workers ------------------------------------------

@@ -125,6 +125,10 @@ def test_batch_equals_per_image_and_channels_last_input():
     xn = x.clone().requires_grad_(True)
     conv(xn).sum().backward()
     assert xn.grad.is_contiguous() and torch.allclose(xn.grad, xc.grad, atol=1e-12)
+    # a channel slice of a channels-last map (contiguous in neither format) stays channels-last
+    wide = torch.cat([x, x], 1).to(memory_format=torch.channels_last)
+    ys = conv(wide[:, 3:])
+    assert ys.is_contiguous(memory_format=torch.channels_last) and torch.allclose(ys, y, atol=1e-12)
 
 
 def test_configuration_errors():
