@@ -10,7 +10,7 @@ also splits them into occlusion-free and occluded rooms, and the occluded ones b
 of walls that no column sees (two or more consecutive hidden walls: the hidden part of the room is
 not observable, only the smallest consistent room can be recovered).
 
-    python -m omnidl.postprocess.layout.acceptance --n 200 [--width 1024 --rc 1.0 --out table.md]
+    python -m omnidl.postprocess.layout.acceptance --n 200 [--protocol both|all|thesis --width 1024 --rc 1.0 --out table.md]
 """
 from __future__ import annotations
 
@@ -72,18 +72,37 @@ def hidden_run(room: Room, width: int, rc: float) -> int:
     return best
 
 
-def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, progress: bool = True) -> list[dict]:
+def sample_rooms(n: int, manhattan: bool, rc: float, seed: int = 0, occlusion_free: bool = False,
+                 progress: bool = True) -> list[Room]:
+    """``n`` engine rooms from consecutive seeds; with ``occlusion_free`` the occluded ones are skipped
+    (the protocol of the thesis' Table 5.2) until ``n`` rooms without occlusion are collected."""
+    from tqdm import tqdm
+    rooms: list[Room] = []
+    i = 0
+    with tqdm(total=n, desc=f"{'manhattan' if manhattan else 'atlanta'} rooms", disable=not progress) as bar:
+        while len(rooms) < n:
+            room = engine_room(seed + i, manhattan, rc)
+            i += 1
+            if occlusion_free and not visible_corners(room, rc).all():
+                continue
+            rooms.append(room)
+            bar.update()
+    return rooms
+
+
+def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, progress: bool = True,
+              occlusion_free: bool = False) -> list[dict]:
     """Rows of the acceptance table (one per world x boundary kind).
 
     Every room counts in the ``*_all`` means; the same means are also given on the occlusion-free
     rooms, on the occluded ones, and on the rooms with two or more consecutive hidden walls
-    (``hidden2``, whose hidden part is not determined by the image).
+    (``hidden2``, whose hidden part is not determined by the image). ``occlusion_free``: the ``n``
+    rooms are the first ``n`` occlusion-free ones (the thesis' Table 5.2 protocol).
     """
     from tqdm import tqdm
     rows = []
     for world in ("manhattan", "atlanta"):
-        rooms = [engine_room(seed + i, world == "manhattan", rc) for i in
-                 tqdm(range(n), desc=f"{world} rooms", disable=not progress)]
+        rooms = sample_rooms(n, world == "manhattan", rc, seed, occlusion_free, progress)
         runs = np.array([hidden_run(r, width, rc) for r in rooms])
         occluded = np.array([not visible_corners(r, rc).all() for r in rooms])
         for quant in (False, True):
@@ -122,9 +141,11 @@ def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, p
     return rows
 
 
-def to_markdown(rows: list[dict], width: int, rc: float) -> str:
-    head = (f"Noise-free synthetic rooms, {width}x{width // 2}, Rc = {rc} m. *all*: every room (the acceptance "
-            "numbers); then the occlusion-free rooms, the occluded ones, and among those the rooms with at most "
+def to_markdown(rows: list[dict], width: int, rc: float, occlusion_free: bool = False) -> str:
+    which = ("the first rooms without occlusion (the thesis' Table 5.2 protocol)" if occlusion_free else
+             "consecutive rooms, occluded ones included")
+    head = (f"Noise-free synthetic rooms ({which}), {width}x{width // 2}, Rc = {rc} m. *all*: every room of the "
+            "table; then the occlusion-free rooms, the occluded ones, and among those the rooms with at most "
             "one / two or more consecutive walls that no column sees (*hidden 1* / *hidden >= 2*). CE in metres, "
             "IoU in %.\n\n"
             "| world | boundaries | rooms | occluded | hidden >= 2 | failed | CE all | 3D IoU all | u2s IoU all | "
@@ -132,13 +153,18 @@ def to_markdown(rows: list[dict], width: int, rc: float) -> str:
             "CE hidden 1 | 3D IoU hidden 1 | CE hidden >= 2 | 3D IoU hidden >= 2 | max h err (m) | ms/layout |\n|"
             + "---|" * 21)
     lines = [head]
+
+    def f(v: float, digits: int) -> str:
+        return "–" if not math.isfinite(v) else f"{v:.{digits}f}"
     for r in rows:
         lines.append(
             f"| {r['world']} | {r['boundaries']} | {r['rooms']} | {r['occluded']} | {r['hidden2']} | {r['failed']} | "
-            f"{r['ce_all']:.4f} | {r['iou_3d_all']:.2f} | {r['iou_3d_u2s_all']:.2f} | {r['cen_all']:.3f} | "
-            f"{r['iou_2d_all']:.2f} | {r['ce_free']:.4f} | {r['iou_3d_free']:.2f} | {r['ce_occ']:.4f} | "
-            f"{r['iou_3d_occ']:.2f} | {r['ce_hidden1']:.4f} | {r['iou_3d_hidden1']:.2f} | {r['ce_hidden2']:.4f} | "
-            f"{r['iou_3d_hidden2']:.2f} | {r['height_err_max_m']:.4f} | {r['ms_per_layout']:.1f} |")
+            + " | ".join(f(r[k], d) for k, d in (
+                ("ce_all", 4), ("iou_3d_all", 2), ("iou_3d_u2s_all", 2), ("cen_all", 3), ("iou_2d_all", 2),
+                ("ce_free", 4), ("iou_3d_free", 2), ("ce_occ", 4), ("iou_3d_occ", 2), ("ce_hidden1", 4),
+                ("iou_3d_hidden1", 2), ("ce_hidden2", 4), ("iou_3d_hidden2", 2), ("height_err_max_m", 4),
+                ("ms_per_layout", 1)))
+            + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -148,10 +174,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=1024)
     ap.add_argument("--rc", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--protocol", choices=("both", "all", "thesis"), default="both",
+                    help="'all': n consecutive rooms, occlusions included; 'thesis': the first n occlusion-free "
+                         "rooms (Table 5.2 leaves occluded rooms out); 'both' (default): both tables")
     ap.add_argument("--out", default=None, help="write the markdown table here (atomically)")
     a = ap.parse_args(argv)
-    rows = run_study(a.n, a.width, a.rc, a.seed)
-    md = to_markdown(rows, a.width, a.rc)
+    tables = []
+    for occlusion_free in {"all": (False,), "thesis": (True,), "both": (True, False)}[a.protocol]:
+        rows = run_study(a.n, a.width, a.rc, a.seed, occlusion_free=occlusion_free)
+        tables.append(to_markdown(rows, a.width, a.rc, occlusion_free))
+    md = "\n".join(tables)
     print(md)
     if a.out:
         from ...utils.io import atomic_write_text

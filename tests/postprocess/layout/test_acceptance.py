@@ -25,3 +25,10 @@ def test_tiny_study_reports_every_room():
         assert math.isfinite(r["ce_all"]) and 0 <= r["iou_3d_all"] <= 100
     md = to_markdown(rows, 256, 1.0)
     assert md.count("\n| manhattan |") == 2 and md.count("\n| atlanta |") == 2 and "CE all" in md
+
+
+def test_thesis_protocol_keeps_only_occlusion_free_rooms():
+    rows = run_study(3, width=256, progress=False, occlusion_free=True)
+    assert all(r["rooms"] == 3 and r["occluded"] == 0 and r["failed"] == 0 for r in rows)
+    md = to_markdown(rows, 256, 1.0, occlusion_free=True)
+    assert "Table 5.2 protocol" in md and "| – |" in md            # no occluded rooms: empty columns
