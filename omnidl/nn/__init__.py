@@ -15,3 +15,7 @@ from .wconv import ConvNormAct, WConv, make_activation
 
 __all__ += ["CircularConv2d", "PanoramaPad2d", "make_conv2d", "pad_panorama", "FFC", "FourierBlock", "FourierUnit",
             "SpectralTransform", "split_channels", "ConvNormAct", "WConv", "make_activation"]
+
+from .fusion import UpsampleSum, blocked_conv, interpolation_matrix, upsample_sum
+
+__all__ += ["UpsampleSum", "blocked_conv", "interpolation_matrix", "upsample_sum"]
