@@ -113,18 +113,18 @@ class UpsampleSum:
         acc = None
         for flat, A, w, width in self.terms:
             if A is None:                                 # a full-size map: its rows
-                term = flat[:, a:b] if isinstance(flat, Tensor) else self._flat(flat(a, b))
+                term = _rows_of(flat, a, b) if isinstance(flat, Tensor) else self._flat(flat(a, b))
             else:                                         # height pass on the rows it needs
                 block = A[a:b]
                 used = block.any(0).nonzero()
                 lo, hi = int(used[0]), int(used[-1]) + 1
                 block = block[:, lo:hi] if w is None else block[:, lo:hi] * w
                 block = block.expand(flat.shape[0], -1, -1)
+                src = _rows_of(flat, lo, hi)
                 if width == W:
-                    acc = torch.bmm(block, flat[:, lo:hi]) if acc is None else \
-                        torch.baddbmm(acc, block, flat[:, lo:hi])
+                    acc = torch.bmm(block, src) if acc is None else torch.baddbmm(acc, block, src)
                     continue
-                term = F.interpolate(self._unflat(torch.bmm(block, flat[:, lo:hi])), size=(b - a, W),
+                term = F.interpolate(self._unflat(torch.bmm(block, src)), size=(b - a, W),
                                      mode="bilinear", align_corners=True)     # deferred width pass
                 term, w = self._flat(term), None                              # (weight already applied)
             if acc is None:
@@ -139,6 +139,11 @@ class UpsampleSum:
     def full(self) -> Tensor:
         """The whole sum ``(B, C, H, W)``."""
         return self.rows(0, self.shape[2])
+
+
+def _rows_of(flat: Tensor, a: int, b: int) -> Tensor:
+    """``flat[:, a:b]``, or ``flat`` itself for all rows (a slice's backward writes a zero-filled copy)."""
+    return flat if (a, b) == (0, flat.shape[1]) else flat[:, a:b]
 
 
 def upsample_sum(maps: Sequence[Tensor], weights: Sequence[Tensor | float | None],
