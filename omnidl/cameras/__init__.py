@@ -9,8 +9,9 @@ from .catadioptric import Catadioptric, Unified
 from .scaramuzza import Scaramuzza, read_ocamcalib
 from .noncentral_panorama import NonCentralPanorama
 from .noncentral_catadioptric import NonCentralCatadioptric
+from .resolve import CAMERA_CONFIG_DIR, check_image_size, resolve_camera
 
 __all__ = ["Camera", "Rays", "ResizedCamera", "pixel_grid", "build", "get_camera_class", "list_cameras",
            "register_camera", "Equirectangular", "Pinhole", "Fisheye", "KannalaBrandt", "read_kb_calibration",
            "Catadioptric", "Unified", "Scaramuzza", "read_ocamcalib",
-           "NonCentralPanorama", "NonCentralCatadioptric"]
+           "NonCentralPanorama", "NonCentralCatadioptric", "resolve_camera", "check_image_size", "CAMERA_CONFIG_DIR"]

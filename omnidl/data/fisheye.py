@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,45 +36,20 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from omnidl.cameras import build
 from omnidl.cameras.base import Camera, ResizedCamera
 from omnidl.cameras.equirectangular import Equirectangular
-from omnidl.cameras.kannala_brandt import KannalaBrandt
+from omnidl.cameras.resolve import CALIB_SUFFIXES, resolve_camera  # noqa: F401 (CALIB_SUFFIXES: re-export)
 from omnidl.geometry import euler_to_matrix, reproject
 
 SPLITS = {"train": 0, "val": 1, "test": 2}
-CALIB_SUFFIXES = (".txt", ".calib", ".dat")
 
 
 def load_camera(spec: Any, width: int | None = None, height: int | None = None, check_aspect: bool = True
                 ) -> Camera:
-    """A camera from a ``Camera``, a config mapping (``calib_file`` allowed), a KB calibration text file
-    (``cx cy fx fy W H FOV k1 k2 k3 k4``), a camera YAML file or a ``configs/camera/<name>.yaml`` name.
-
-    ``width``/``height``: the image size the camera is used at; the camera is resized to it
-    (:meth:`Camera.resized`, thesis Eq. 7.3). With ``check_aspect`` a size whose aspect ratio
-    disagrees with the calibration raises ``ValueError``.
-    """
-    if isinstance(spec, Camera):
-        cam = spec
-    elif isinstance(spec, Mapping) or hasattr(spec, "items"):
-        cfg = {k: v for k, v in dict(spec).items() if k != "_target_"}
-        if "type" not in cfg and "calib_file" in cfg:
-            cfg["type"] = "kannala_brandt"
-        cam = build(cfg)
-    elif isinstance(spec, (str, Path)) and Path(spec).suffix.lower() in CALIB_SUFFIXES:
-        if not Path(spec).is_file():
-            raise FileNotFoundError(f"calibration file {str(spec)!r} does not exist")
-        cam = KannalaBrandt.from_file(spec)
-    else:
-        from omnidl.synth.cameras import resolve_camera
-        cam = resolve_camera(spec)
-    if width is not None and height is not None and (cam.width, cam.height) != (int(width), int(height)):
-        if check_aspect:
-            from omnidl.models.unet import check_image_size
-            check_image_size((int(height), int(width)), cam, "requested image")
-        cam = cam.resized(int(width), int(height))
-    return cam
+    """:func:`omnidl.cameras.resolve_camera` with the aspect-ratio check on by default: a ``Camera``, a
+    config mapping (``calib_file`` allowed), a KB calibration text file, a camera YAML file or a
+    ``configs/camera/<name>.yaml`` name, resized to ``width x height`` (same aspect ratio)."""
+    return resolve_camera(spec, width, height, check_aspect=check_aspect)
 
 
 def principal_point(camera: Camera) -> tuple[float, float]:

@@ -23,6 +23,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnidl.cameras.base import Camera
+from omnidl.cameras.resolve import check_image_size
+from omnidl.cameras.resolve import resolve_camera as _resolve_camera
 
 from .registry import register_model
 
@@ -30,25 +32,8 @@ TASKS = ("depth", "semantic")
 
 
 def resolve_camera(camera: Any) -> Camera | None:
-    """``None``, a ``Camera``, a config mapping, a ``configs/camera`` name, a YAML path or a calibration file."""
-    if camera is None or isinstance(camera, Camera):
-        return camera
-    from omnidl.data.fisheye import load_camera
-    return load_camera(camera)
-
-
-def check_image_size(hw: Sequence[int], camera: Camera, what: str = "image", rel_tol: float = 0.02) -> None:
-    """Raise ``ValueError`` unless an ``(H, W)`` image can show ``camera`` (same aspect ratio).
-
-    A calibrated camera describes an image of ``camera.width x camera.height`` pixels; a network
-    may read it uniformly resized (thesis Eq. 7.3), but not with another aspect ratio.
-    """
-    h, w = int(hw[0]), int(hw[1])
-    ar_img, ar_cam = w / h, camera.width / camera.height
-    if abs(ar_img / ar_cam - 1) > rel_tol:
-        raise ValueError(f"{what} of size {w}x{h} (W x H) disagrees with the calibration "
-                         f"({camera.width}x{camera.height}, aspect {ar_cam:.4f} vs {ar_img:.4f}); resize the image "
-                         "to the calibrated aspect ratio or use a calibration of this image size")
+    """``None`` or any camera spec of :func:`omnidl.cameras.resolve_camera` -> camera (``None`` stays ``None``)."""
+    return _resolve_camera(camera, default=None)
 
 
 class DoubleConv(nn.Sequential):

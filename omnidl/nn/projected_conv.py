@@ -8,14 +8,15 @@ module-level cache shared by every layer with the same key.
 """
 from __future__ import annotations
 
+import os
 import threading
-from collections.abc import Mapping
 from typing import Literal
 
 import torch
 from torch import Tensor, nn
 
 from omnidl.cameras.base import Camera
+from omnidl.cameras.resolve import resolve_camera
 
 from .offsets import Pair, compute_sampling
 from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
@@ -91,21 +92,16 @@ def plan_cache_info() -> dict[str, int]:
 
 
 def as_camera(camera, default: Camera | None = None) -> Camera | None:
-    """``None``, a :class:`Camera`, or a camera config mapping (``{"type": ..., ...}``) -> camera
-    (``default`` for ``None``)."""
-    if camera is None:
-        return default
-    if isinstance(camera, Camera):
-        return camera
-    try:
-        from omegaconf import DictConfig
-        is_cfg = isinstance(camera, DictConfig)
-    except ImportError:  # pragma: no cover
-        is_cfg = False
-    if is_cfg or isinstance(camera, Mapping):
-        from omnidl.cameras import build
-        return build(camera)
-    raise TypeError(f"camera must be an omnidl Camera, a camera config mapping or None, got {type(camera).__name__}")
+    """``None`` (-> ``default``), a :class:`Camera` or a camera config mapping -> camera.
+
+    :func:`omnidl.cameras.resolve_camera` for in-memory specs only: a layer never reads files or
+    config names (resolve those first).
+    """
+    if isinstance(camera, (str, os.PathLike)):
+        raise TypeError(f"camera must be an omnidl Camera, a camera config mapping or None, got "
+                        f"{type(camera).__name__} {str(camera)!r}; resolve names and files with "
+                        "omnidl.cameras.resolve_camera first")
+    return resolve_camera(camera, default=default)
 
 
 def _pair(v) -> Pair:

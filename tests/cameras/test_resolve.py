@@ -1,0 +1,148 @@
+"""omnidl.cameras.resolve_camera: every spec kind, resizing, the aspect check, errors, and the old names."""
+import subprocess
+import sys
+
+import pytest
+from omegaconf import OmegaConf
+
+from omnidl.cameras import (CAMERA_CONFIG_DIR, Equirectangular, NonCentralPanorama, ResizedCamera, build,
+                            check_image_size, list_cameras, resolve_camera)
+
+F195_VALUES = [540, 480, 287, 287, 1080, 960, 195, 3.37012024344156e-19, -3.543830680552053e-05,
+               9.999999999924497e-08, -6.883696004705416e-11]
+
+
+@pytest.fixture(scope="module")
+def f195():
+    return build(OmegaConf.load(CAMERA_CONFIG_DIR / "kb_f195.yaml"))
+
+
+@pytest.fixture
+def calib_file(tmp_path):
+    path = tmp_path / "fisheye_calibration_FOV195.txt"
+    path.write_text("\n".join(repr(float(v)) for v in F195_VALUES) + "\n")
+    return path
+
+
+def test_camera_object_is_returned_as_is(f195):
+    assert resolve_camera(f195) is f195
+
+
+def test_mapping_and_dictconfig(f195):
+    cfg = OmegaConf.to_container(OmegaConf.load(CAMERA_CONFIG_DIR / "kb_f195.yaml"))
+    assert "_target_" in cfg
+    assert resolve_camera(cfg) == f195
+    assert resolve_camera(OmegaConf.create(cfg)) == f195
+    node = OmegaConf.create({"w": 64, "camera": {"type": "equirect", "width": "${w}", "height": 32}}).camera
+    assert resolve_camera(node) == Equirectangular(width=64, height=32)
+    assert resolve_camera({"type": "equirect", "width": 64, "height": 32}, height=16, width=32) == \
+        Equirectangular(width=64, height=32).resized(32, 16)
+
+
+def test_fields_override_a_config():
+    cam = resolve_camera({"type": "noncentral_pano", "width": 64, "height": 32, "rc": 1.0}, rc=0.25)
+    assert isinstance(cam, NonCentralPanorama) and cam.rc == 0.25
+    cam = resolve_camera("noncentral_pano", 64, 32, rc=0.5)
+    assert (cam.width, cam.height) == (64, 32)
+    with pytest.raises(ValueError, match=r"\['rc'\].*Equirectangular object"):
+        resolve_camera(Equirectangular(width=64, height=32), rc=0.5)
+
+
+def test_calibration_file_and_calib_file_mapping(calib_file, f195):
+    assert resolve_camera(calib_file) == f195
+    assert resolve_camera(str(calib_file)) == f195
+    assert resolve_camera({"calib_file": str(calib_file)}) == f195          # type defaults to kannala_brandt
+    assert resolve_camera({"calib_file": str(calib_file), "_target_": "omnidl.cameras.build"}) == f195
+    assert resolve_camera(calib_file, fx=290.0).fx == 290.0                  # fields override the file
+
+
+def test_yaml_file(tmp_path, f195):
+    assert resolve_camera(CAMERA_CONFIG_DIR / "kb_f195.yaml") == f195
+    assert resolve_camera(str(CAMERA_CONFIG_DIR / "kb_f195.yaml")) == f195
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("width: 10\n")
+    with pytest.raises(ValueError, match=r"bad\.yaml.*'type'"):
+        resolve_camera(bad)
+
+
+def test_config_name(f195):
+    assert resolve_camera("kb_f195") == f195
+    # a config name wins over the registered type of the same name
+    assert resolve_camera("equirect") == build(OmegaConf.load(CAMERA_CONFIG_DIR / "equirect.yaml"))
+
+
+def test_registered_type_is_built_at_the_size():
+    assert "pinhole" in list_cameras()
+    cam = resolve_camera("fisheye", 48, 40, f=10.0, cx=24.0, cy=20.0)
+    assert not isinstance(cam, ResizedCamera) and (cam.width, cam.height) == (48, 40)
+    with pytest.raises(ValueError, match="'fisheye' needs width and height"):
+        resolve_camera("fisheye")
+
+
+def test_resize_and_aspect_check(f195):
+    small = resolve_camera("kb_f195", 72, 64)
+    assert isinstance(small, ResizedCamera) and small.base == f195 and (small.width, small.height) == (72, 64)
+    assert resolve_camera(f195, 1080, 960) is f195                         # same size: unchanged
+    assert resolve_camera(f195, 64, 64).width == 64                         # no check by default
+    assert resolve_camera(f195, 72, 64, check_aspect=True) == small
+    with pytest.raises(ValueError, match=r"64x64.*disagrees with the calibration.*1080x960"):
+        resolve_camera(f195, 64, 64, check_aspect=True)
+    with pytest.raises(ValueError, match="both width and height"):
+        resolve_camera(f195, width=72)
+    with pytest.raises(ValueError, match="1080x960"):
+        check_image_size((64, 64), f195)
+    check_image_size((64, 72), f195)
+
+
+def test_none_with_and_without_default():
+    with pytest.raises(TypeError, match=r"no camera given \(None\); expected a Camera"):
+        resolve_camera(None)
+    assert resolve_camera(None, default=None) is None
+    pano = Equirectangular(width=64, height=32)
+    assert resolve_camera(None, default=pano) is pano
+    assert resolve_camera(None, 32, 16, default=pano) == pano.resized(32, 16)
+    assert resolve_camera({"type": "equirect", "width": 8, "height": 4}, default=pano).width == 8
+
+
+def test_errors_name_what_was_given_and_what_is_accepted(tmp_path):
+    with pytest.raises(ValueError, match=r"unknown camera 'no_such_camera'.*kb_f195.*kannala_brandt") as info:
+        resolve_camera("no_such_camera")
+    assert str(CAMERA_CONFIG_DIR) in str(info.value)
+    with pytest.raises(TypeError, match=r"camera spec of type int \(3\); expected a Camera, a config mapping"):
+        resolve_camera(3)
+    for name in ("missing.txt", "missing.yaml"):
+        with pytest.raises(FileNotFoundError, match=name):
+            resolve_camera(tmp_path / name)
+    short = tmp_path / "short.txt"
+    short.write_text("1 2 3\n")
+    with pytest.raises(ValueError, match=r"short\.txt.*expected 11 values"):
+        resolve_camera(short)
+    with pytest.raises(ValueError, match="needs a 'type'"):
+        resolve_camera({"width": 8, "height": 4})
+
+
+def test_old_names_are_the_same_resolver(calib_file, f195):
+    from omnidl.data.fisheye import load_camera
+    from omnidl.models import unet
+    from omnidl.nn.projected_conv import as_camera
+    from omnidl.synth import cameras as synth_cameras
+    assert synth_cameras.resolve_camera is resolve_camera and synth_cameras.CAMERA_CONFIG_DIR == CAMERA_CONFIG_DIR
+    assert unet.check_image_size is check_image_size
+    assert unet.resolve_camera(None) is None and unet.resolve_camera(str(calib_file)) == f195
+    assert load_camera(calib_file) == f195
+    with pytest.raises(ValueError, match="disagrees"):                  # load_camera checks the aspect by default
+        load_camera(calib_file, 64, 64)
+    assert load_camera(calib_file, 64, 64, check_aspect=False).width == 64
+    pano = Equirectangular(width=64, height=32)
+    assert as_camera(None) is None and as_camera(None, default=pano) is pano
+    assert as_camera(OmegaConf.create({"type": "equirect", "width": 64, "height": 32})) == pano
+    with pytest.raises(TypeError, match="resolve_camera"):                 # layers take in-memory specs only
+        as_camera("equirect")
+
+
+def test_import_pulls_in_no_higher_package():
+    code = ("import sys, omnidl.cameras; bad = [m for m in sys.modules if m.split('.')[:2] in "
+            "[['omnidl', p] for p in ('nn', 'models', 'synth', 'data')] or m == 'omegaconf']; print(bad)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
