@@ -108,10 +108,15 @@ class UpsampleSum:
         return flat.view(B, C, flat.shape[1], flat.shape[2])
 
     def rows(self, a: int, b: int) -> Tensor:
-        """Rows ``a:b`` of the sum: ``(B, C, b - a, W)``."""
+        """Rows ``a:b`` of the sum: ``(B, C, b - a, W)``.
+
+        The running sum is a buffer of this call's own, updated in place (no backward needs the outputs
+        of the products and sums that write it, so this is autograd-safe).
+        """
         W = self.shape[3]
         acc = None
         for flat, A, w, width in self.terms:
+            fresh = False                                 # term is a buffer of this call's own
             if A is None:                                 # a full-size map: its rows
                 term = _rows_of(flat, a, b) if isinstance(flat, Tensor) else self._flat(flat(a, b))
             else:                                         # height pass on the rows it needs
@@ -122,17 +127,17 @@ class UpsampleSum:
                 block = block.expand(flat.shape[0], -1, -1)
                 src = _rows_of(flat, lo, hi)
                 if width == W:
-                    acc = torch.bmm(block, src) if acc is None else torch.baddbmm(acc, block, src)
+                    acc = torch.bmm(block, src) if acc is None else acc.baddbmm_(block, src)
                     continue
                 term = F.interpolate(self._unflat(torch.bmm(block, src)), size=(b - a, W),
                                      mode="bilinear", align_corners=True)     # deferred width pass
-                term, w = self._flat(term), None                              # (weight already applied)
+                term, w, fresh = self._flat(term), None, True                 # (weight already applied)
             if acc is None:
-                acc = term.clone() if w is None else term * w
+                acc = (term if fresh else term.clone()) if w is None else term * w
             elif isinstance(w, Tensor):
-                acc = torch.addcmul(acc, term, w)
+                acc.addcmul_(term, w)
             else:
-                acc = acc.add(term, alpha=1.0 if w is None else float(w))
+                acc.add_(term, alpha=1.0 if w is None else float(w))
         assert acc is not None
         return self._unflat(acc)
 
