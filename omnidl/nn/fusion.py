@@ -171,9 +171,10 @@ def can_block(conv: nn.Module) -> bool:
 def blocked_conv(conv: nn.Module, rows: Callable[[int, int], Tensor], height: int, block_rows: int) -> Tensor:
     """``conv(X)`` for a map ``X`` that is only ever materialised as row blocks ``rows(a, b) (B, C, b - a, W)``.
 
-    Each block is computed with the ``pad_h`` halo rows the convolution needs, convolved with vertical zero
-    padding (exact at the image's top and bottom, and only the halo's outputs, which are dropped, see it
-    elsewhere), and the output blocks are concatenated: ``(B, C_out, height, W)``.
+    Each block is computed with the ``pad_h`` halo rows the convolution needs and convolved with the
+    convolution's own vertical zero padding: exact at the image's top and bottom; elsewhere only the halo
+    rows' outputs see those zeros, and they are dropped. The output blocks are concatenated:
+    ``(B, C_out, height, W)``.
     ``conv`` must satisfy :func:`can_block`.
     """
     if not can_block(conv):
