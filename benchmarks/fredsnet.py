@@ -9,7 +9,10 @@ forward = ``eval()`` + ``no_grad``; forward+backward = ``train()``, loss
 ``CE(semantic, random labels) + L1(depth, random)``, ``zero_grad`` + forward + backward.
 The timed runs are **interleaved**: each repetition times the baseline and every variant once, so
 that a change of machine load hits all of them alike; ratios are medians of the per-repetition
-ratios, absolute times medians (and minima) over repetitions. The load average is printed: absolute
+ratios, absolute times medians (and minima) over repetitions. The 512x256 forwards run as one phase
+and the 256x128 jobs (training steps with their baseline forward) as the next: forwards back to back,
+as in inference and as the reference was timed (a training step in between returns its buffers to
+the OS and the next forward page-faults them in again). The load average is printed: absolute
 numbers taken on a busy machine are not comparable with anything.
 Targets (issue 5): FreDSNet-Std forward <= 0.8 s and FreDSNet-Equi <= 1.3x Std.
 """
@@ -104,15 +107,20 @@ def main(argv: list[str] | None = None) -> dict:
         jobs[f"{name}_fwd_512x256"] = forward_fn(model, 256, 512)
         jobs[f"{name}_fwdbwd_256x128"] = train_step_fn(model, 128, 256)
 
-    for key, fn in jobs.items():                      # warm-up (and Equi sampling plans)
-        for _ in range(max(1, a.warmup)):
-            fn()
-        print(f"warmed up {key}", flush=True)
     times: dict[str, list[float]] = {k: [] for k in jobs}
-    for r in range(a.reps):
-        for key, fn in jobs.items():
-            times[key].append(_timed(fn))
-        print(f"rep {r + 1}/{a.reps}: " + ", ".join(f"{k} {v[-1]:.3f}" for k, v in times.items()), flush=True)
+    # two phases, the 512x256 forwards then the 256x128 jobs (training steps and their baseline forward), as
+    # the reference timed them: forwards back to back; within a phase every repetition times the baseline
+    # and each variant once
+    for phase in ("512x256", "256x128"):
+        keys = [k for k in jobs if k.endswith(phase)]
+        for key in keys:                              # warm-up (and Equi sampling plans)
+            for _ in range(max(1, a.warmup)):
+                jobs[key]()
+            print(f"warmed up {key}", flush=True)
+        for r in range(a.reps):
+            for key in keys:
+                times[key].append(_timed(jobs[key]))
+            print(f"rep {r + 1}/{a.reps}: " + ", ".join(f"{k} {times[k][-1]:.3f}" for k in keys), flush=True)
 
     def ratio(num: str, den: str) -> float:
         return statistics.median(n / d for n, d in zip(times[num], times[den]))
