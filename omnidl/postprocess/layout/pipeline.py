@@ -442,6 +442,12 @@ def _short_wall_line(rays: ColumnRays, c: np.ndarray, h_c: float, h_f: float):
     return (th + math.pi) % (2 * math.pi) - math.pi, d
 
 
+def _keep_walls(keep: np.ndarray, cols: list[np.ndarray], *per_wall: np.ndarray) -> tuple:
+    """``(cols, *per_wall)`` restricted to the walls where ``keep`` is true (each wall with its starting corner)."""
+    idx = np.flatnonzero(keep)
+    return ([cols[k] for k in idx], *(a[idx] for a in per_wall))
+
+
 def _merge(cols, theta, keep_mask, corners_u, merge_pairs):
     """Merge walls ``k`` and ``k+1`` for every ``k`` in ``merge_pairs`` (drop corner ``k+1``)."""
     n = len(cols)
@@ -495,10 +501,8 @@ def _manhattan(rays, corners_u, theta, good, cols, opt, camera_height):
                 keep[r] = False
     if (~keep).any():
         # dropping wall k merges its columns into nothing: remove it and its starting corner
-        idx = np.flatnonzero(keep)
-        cols = [cols[k] for k in idx]
-        corners_u, theta, good, label = corners_u[idx], theta[idx], good[idx], label[idx]
-        n = len(idx)
+        cols, corners_u, theta, good, label = _keep_walls(keep, cols, corners_u, theta, good, label)
+        n = len(cols)
     for _ in range(n):
         if n < 3:
             return f"only {n} walls remain after removing unfittable short walls"
@@ -602,10 +606,8 @@ def _atlanta(rays, corners_u, theta, good, cols, opt, camera_height):
     if keep.sum() < 3:
         return f"only {int(keep.sum())} walls could be located"
     if (~keep).any():
-        idx = np.flatnonzero(keep)
-        cols = [cols[k] for k in idx]
-        corners_u, theta, d, good = corners_u[idx], theta[idx], d[idx], good[idx]
-        n = len(idx)
+        cols, corners_u, theta, d, good = _keep_walls(keep, cols, corners_u, theta, d, good)
+        n = len(cols)
     # merge coplanar neighbours (spurious corners)
     for _ in range(n):
         pairs = []
