@@ -24,15 +24,14 @@ import argparse
 import json
 import math
 import os
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks._timing import median_times  # noqa: E402
 from omnidl.data.horizon import horizon_heatmaps  # noqa: E402
 from omnidl.metrics.rotation import horizon_normal_error, rotation_error  # noqa: E402
 from omnidl.postprocess.gyroscope.angles import (axis_angle_to_matrix, random_rotations, rot_y,  # noqa: E402
@@ -46,30 +45,6 @@ from omnidl.postprocess.gyroscope.sampling import rotate_equirect  # noqa: E402
 from omnidl.postprocess.gyroscope.scene import procedural_panorama  # noqa: E402
 
 
-CPU_TIMES: dict[int, float] = {}
-
-
-def _median_time(fn, reps: int, warmup: int = 2) -> float:
-    """Median wall time of ``fn``; the median process CPU time goes to ``CPU_TIMES[id(fn)]`` (on a busy
-    machine CPU seconds are the steadier figure: wall time counts the time other processes hold the cores)."""
-    for _ in range(warmup):
-        fn()
-    ts, cs = [], []
-    for _ in range(reps):
-        t, c = time.perf_counter(), time.process_time()
-        fn()
-        ts.append(time.perf_counter() - t)
-        cs.append(time.process_time() - c)
-    CPU_TIMES[id(fn)] = statistics.median(cs)
-    return statistics.median(ts)
-
-
-def _timed(fn, reps: int, warmup: int = 2) -> tuple[float, float]:
-    """``(wall s, CPU s)`` medians."""
-    w = _median_time(fn, reps, warmup)
-    return w, CPU_TIMES.pop(id(fn))
-
-
 def speed(args) -> dict:
     from omnidl.models import create_model
     torch.set_num_threads(args.threads)
@@ -78,13 +53,13 @@ def speed(args) -> dict:
     ref = procedural_panorama(None, 128, 256, seed=1)
     cur = procedural_panorama(R, 128, 256, seed=1)
     res: dict = {"threads": args.threads, "load_average": os.getloadavg()}
-    t_mpp, c_mpp = _timed(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=4), args.reps)
-    t_mpp1, c_mpp1 = _timed(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1), args.reps)
-    t_base, c_base = _timed(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1, grid_height=0, max_iter=10),
-                            max(1, args.reps // 2), warmup=1)
-    t_pvg, c_pvg = _timed(lambda: pvg_refine(cur, ref, R.float(), level=5), args.reps)
+    t_mpp, c_mpp = median_times(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=4), args.reps, warmup=2)
+    t_mpp1, c_mpp1 = median_times(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1), args.reps, warmup=2)
+    t_base, c_base = median_times(lambda: mpp_yaw(cur, ref, level=3, lambda_g=0.325, tries=1, grid_height=0,
+                                                  max_iter=10), max(1, args.reps // 2), warmup=1)
+    t_pvg, c_pvg = median_times(lambda: pvg_refine(cur, ref, R.float(), level=5), args.reps, warmup=2)
     hl, vp = horizon_heatmaps(R.float(), 64, 128)
-    t_fit, c_fit = _timed(lambda: fit_horizon(hl, vp), args.reps)
+    t_fit, c_fit = median_times(lambda: fit_horizon(hl, vp), args.reps, warmup=2)
     res.update(mpp_s=t_mpp, mpp_1start_s=t_mpp1, baseline_mpp_reference_eval_s=t_base, pvg_s=t_pvg, horizon_fit_s=t_fit,
                cpu_s={"mpp": c_mpp, "mpp_1start": c_mpp1, "baseline_mpp": c_base, "pvg": c_pvg, "horizon_fit": c_fit})
     x = torch.rand(1, 3, 128, 256)
@@ -95,7 +70,7 @@ def speed(args) -> dict:
         def fwd():
             with torch.no_grad():
                 m(x)
-        t_net, c_net = _timed(fwd, args.reps)
+        t_net, c_net = median_times(fwd, args.reps, warmup=2)
         total = t_net + t_fit + t_mpp + t_pvg
         ctotal = c_net + c_fit + c_mpp + c_pvg
         res[tag] = {"forward_s": t_net, "pipeline_s": total, "pipeline_fps": 1 / total, "forward_cpu_s": c_net,

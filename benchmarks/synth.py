@@ -10,27 +10,18 @@ time is printed too: on a shared machine it is the steadier figure (wall time in
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
+import sys
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from omnidl.cameras import build
-from omnidl.synth import place_camera, render, sample_room
-from omnidl.synth import raycast
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def _median_time(fn, reps: int) -> tuple[float, float]:
-    """Median wall time and median process CPU time (all threads) of ``fn``."""
-    fn()  # warm-up (ray cache, allocator)
-    wall, cpu = [], []
-    for _ in range(reps):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return statistics.median(wall), statistics.median(cpu)
+from benchmarks._timing import median_times  # noqa: E402
+from omnidl.cameras import build  # noqa: E402
+from omnidl.synth import place_camera, render, sample_room  # noqa: E402
+from omnidl.synth import raycast  # noqa: E402
 
 
 class _BruteForce:
@@ -76,15 +67,15 @@ def main() -> None:
                     pose = place_camera(sc, cam, seed)
                 except RuntimeError:
                     continue
-                t_engine, c_engine = _median_time(lambda: render(sc, cam, pose, layout=True), args.reps)
+                t_engine, c_engine = median_times(lambda: render(sc, cam, pose, layout=True), args.reps)
                 with _BruteForce():
-                    t_brute, _ = _median_time(lambda: render(sc, cam, pose, layout=True), max(3, args.reps // 2))
+                    t_brute, _ = median_times(lambda: render(sc, cam, pose, layout=True), max(3, args.reps // 2))
                 print(f"{cam_type:16s} {w:4d}x{h:<4d} seed {seed:3d}: {sc.num_primitives:3d} primitives "
                       f"({sc.num_walls} walls, {len(sc.boxes)} boxes, {len(sc.decals)} openings) | engine "
                       f"{t_engine * 1e3:7.1f} ms wall, {c_engine * 1e3:7.1f} ms CPU (target {target * 1e3:.0f} ms: wall "
                       f"{t_engine / target:.2f}x, CPU/threads {c_engine / args.threads / target:.2f}x) | brute force {t_brute * 1e3:7.1f} ms | speed-up "
                       f"x{t_brute / t_engine:.2f}", flush=True)
-    t_room = _median_time(lambda: [sample_room(s) for s in range(20)], 3)[0] / 20
+    t_room = median_times(lambda: [sample_room(s) for s in range(20)], 3)[0] / 20
     print(f"room sampling (floor plan + furniture): {t_room * 1e3:.1f} ms per room")
     if args.profile:
         import cProfile
