@@ -33,15 +33,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._timing import median_times  # noqa: E402
 from omnidl.data.horizon import horizon_heatmaps  # noqa: E402
+from omnidl.geometry.horizon import fit_horizon  # noqa: E402
+from omnidl.geometry.panorama import rotate_panorama  # noqa: E402
+from omnidl.geometry.rotations import (axis_angle_to_matrix, random_tilt_rotation, rotation_y,  # noqa: E402
+                                       up_from_rotation)
 from omnidl.metrics.rotation import horizon_normal_error, rotation_error  # noqa: E402
-from omnidl.postprocess.gyroscope.angles import (axis_angle_to_matrix, random_rotations, rot_y,  # noqa: E402
-                                                  up_from_rotation)
-from omnidl.postprocess.gyroscope.horizon import fit_horizon  # noqa: E402
 from omnidl.postprocess.gyroscope.icosahedron import icosahedron_vertices  # noqa: E402
 from omnidl.postprocess.gyroscope.mpp import mpp_yaw  # noqa: E402
 from omnidl.postprocess.gyroscope.pipeline import Gyroscope, GyroscopeOptions  # noqa: E402
 from omnidl.postprocess.gyroscope.pvg import pvg_refine  # noqa: E402
-from omnidl.postprocess.gyroscope.sampling import rotate_equirect  # noqa: E402
 from omnidl.postprocess.gyroscope.scene import procedural_panorama  # noqa: E402
 
 
@@ -49,7 +49,7 @@ def speed(args) -> dict:
     from omnidl.models import create_model
     torch.set_num_threads(args.threads)
     icosahedron_vertices(5)
-    R = random_rotations(1, math.radians(30), generator=torch.Generator().manual_seed(0))
+    R = random_tilt_rotation(1, math.radians(30), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     ref = procedural_panorama(None, 128, 256, seed=1)
     cur = procedural_panorama(R, 128, 256, seed=1)
     res: dict = {"threads": args.threads, "load_average": os.getloadavg()}
@@ -112,7 +112,7 @@ def accuracy(args) -> dict:
     results: dict = {}
     errs: dict = {}
     # (a) horizon hook, tilts up to 180 deg
-    R = random_rotations(5 * args.n, math.pi, generator=g)
+    R = random_tilt_rotation(5 * args.n, math.pi, generator=g, dtype=torch.float64)
     hl, vp = horizon_heatmaps(R.float(), 64, 128)
     e = horizon_normal_error(fit_horizon(hl, vp)["up"].double(), up_from_rotation(R))
     errs["horizon hook (GT maps, tilt<=180)"] = (e, 0.5)
@@ -127,14 +127,14 @@ def accuracy(args) -> dict:
     yaws = (torch.rand(args.n, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
     yaws[0] = math.pi
     for name, ref in scenes.items():
-        Ry = rot_y(yaws)
-        cur = procedural_panorama(Ry, 128, 256, seed=11) if name == "procedural" else rotate_equirect(
-            ref.expand(args.n, -1, -1, -1).double(), Ry).float()
+        Ry = rotation_y(yaws)
+        cur = procedural_panorama(Ry, 128, 256, seed=11) if name == "procedural" else rotate_panorama(
+            ref.expand(args.n, -1, -1, -1).double(), Ry)[0].float()
         r = mpp_yaw(cur, ref, level=3, lambda_g=0.325)
         errs[f"MPP pure yaw ({name})"] = (rotation_error(Ry, r.rotation.double()), 3.0)
     # (c) PVG from +-10 deg per axis
     ref = scenes["procedural"]
-    Rg = random_rotations(args.n, math.pi, generator=g)
+    Rg = random_tilt_rotation(args.n, math.pi, generator=g, dtype=torch.float64)
     cur = procedural_panorama(Rg, 128, 256, seed=11)
     w = (torch.rand(args.n, 3, generator=g, dtype=torch.float64) * 2 - 1) * math.radians(10)
     R0 = axis_angle_to_matrix(w) @ Rg

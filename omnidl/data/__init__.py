@@ -1,8 +1,6 @@
 """Datasets (real formats + synthetic), transforms, collation. Loaders are imported lazily by configs
 (``_target_: omnidl.data.stanford2d3ds.Stanford2D3DS``)."""
-from .classes import CLASS_COLORS, CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from .collate import collate_samples
 from .robust import CorruptSampleError, SkipCorrupt
 
-__all__ = ["CLASS_COLORS", "CLASS_NAMES", "IGNORE_INDEX", "NUM_CLASSES", "collate_samples", "CorruptSampleError",
-           "SkipCorrupt"]
+__all__ = ["collate_samples", "CorruptSampleError", "SkipCorrupt"]

@@ -1,7 +1,7 @@
 """Horizon-line and vertical-vanishing-point heat maps from a rotation (HoLiNet ground truth, thesis §6.2.1).
 
 Given the orientation ``R = R_up_cam`` of a panorama (a direction ``d`` of the rotated camera is ``R @ d``
-in the upright camera frame, so the rotated image is ``rotate_equirect(upright, R)``), the horizon normal
+in the upright camera frame, so the rotated image is ``rotate_panorama(upright, R)``), the horizon normal
 in the camera frame is ``n = R.T @ (0, -1, 0)`` and, for every pixel direction ``p`` of the output
 equirectangular grid (pixel centres, exactly through :class:`~omnidl.cameras.Equirectangular`):
 
@@ -28,6 +28,8 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from omnidl.cameras.equirectangular import Equirectangular
+from omnidl.geometry.panorama import rotate_panorama
+from omnidl.geometry.rotations import random_tilt_rotation, up_from_rotation
 
 
 def horizon_heatmaps(rotation: Tensor, height: int, width: int, sigma_deg: float = 3.0,
@@ -39,7 +41,7 @@ def horizon_heatmaps(rotation: Tensor, height: int, width: int, sigma_deg: float
     if rotation.shape[-2:] != (3, 3) or rotation.ndim not in (2, 3):
         raise ValueError(f"horizon_heatmaps: expected rotations (B, 3, 3) or (3, 3), got shape {tuple(rotation.shape)}")
     R = rotation if rotation.ndim == 3 else rotation[None]
-    return heatmaps_from_up(-R[:, 1, :], height, width, sigma_deg, vp_sigma_deg, nadir_weight)
+    return heatmaps_from_up(up_from_rotation(R), height, width, sigma_deg, vp_sigma_deg, nadir_weight)
 
 
 def heatmaps_from_up(up: Tensor, height: int, width: int, sigma_deg: float = 3.0,
@@ -73,16 +75,6 @@ def heatmaps_from_up(up: Tensor, height: int, width: int, sigma_deg: float = 3.0
 
 
 # -- training data ----------------------------------------------------------------------------------
-def _rotate(image: Tensor, R: Tensor) -> Tensor:
-    from omnidl.postprocess.gyroscope.sampling import rotate_equirect
-    return rotate_equirect(image[None], R)[0]
-
-
-def _random_rotation(max_tilt_deg: float, gen: torch.Generator) -> Tensor:
-    from omnidl.postprocess.gyroscope.angles import random_rotations
-    return random_rotations(1, math.radians(max_tilt_deg), generator=gen)[0]
-
-
 def colour_jitter(image: Tensor, strength: float, gen: torch.Generator) -> Tensor:
     """Random brightness, contrast and saturation factors in ``[1 - strength, 1 + strength]``; ``(3, H, W)``."""
     if strength <= 0:
@@ -180,8 +172,8 @@ class RotatedPanoramas(Dataset):
                 img = img[perm]
                 meta["permutation"] = perm.tolist()
             img = colour_jitter(img, self.jitter, gen)
-        R = _random_rotation(self.max_tilt_deg, gen)
-        img = _rotate(img, R.to(img.dtype)).clamp(0, 1)
+        R = random_tilt_rotation(1, math.radians(self.max_tilt_deg), generator=gen, dtype=torch.float64)[0]
+        img = rotate_panorama(img, R.to(img.dtype), cache=False)[0].clamp(0, 1)
         H, W = img.shape[-2:]
         mh = self.map_height or max(1, H // 2)
         hl, vp = horizon_heatmaps(R[None].float(), mh, 2 * mh, self.sigma_deg, self.vp_sigma_deg, self.nadir_weight)
@@ -197,8 +189,8 @@ class RotatedPanoramas(Dataset):
         base_meta = item.get("meta", {})
         if isinstance(base_meta, dict):
             meta["base"] = {k: v for k, v in base_meta.items() if isinstance(v, (str, int, float, bool))}
-        return {"image": img, "horizon_map": hl, "vp_map": vp, "rotation": R.float(), "up": (-R[1, :]).float(),
-                "geometry_valid": torch.tensor(geometry_valid), "meta": meta}
+        return {"image": img, "horizon_map": hl, "vp_map": vp, "rotation": R.float(),
+                "up": up_from_rotation(R).float(), "geometry_valid": torch.tensor(geometry_valid), "meta": meta}
 
 
 def _crop_resize(x: Tensor, scale: float, fy: float, fx: float) -> Tensor:

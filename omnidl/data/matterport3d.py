@@ -4,7 +4,7 @@ Expected layout::
 
     <root>/<scene_id>/<name>_rgb.png          8-bit RGB panorama (2:1)
     <root>/<scene_id>/<name>_depth.png        16-bit depth, metres = value / 4000, 0 = missing
-    <root>/<scene_id>/<name>_semantic.png     optional: 8-bit class ids of omnidl.data.classes
+    <root>/<scene_id>/<name>_semantic.png     optional: 8-bit class ids of omnidl.classes
     <root>/scenes_<split>.txt                 optional: scene ids of a split, one per line
 
 Without ``scenes_<split>.txt`` every scene folder is used for every split (and a warning says so).
@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import torch
 
-from .classes import NUM_CLASSES
+from omnidl.classes import NUM_CLASSES
 from .paired import PairedPanoramas, PanoramaFiles, check_folder, check_size, drop_incomplete, to_tensor_labels
 from .readers import read_depth_png, read_raw, resize_labels
 from .robust import CorruptSampleError

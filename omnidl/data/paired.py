@@ -64,7 +64,7 @@ class PairedPanoramas(Dataset):
         samples: the files.
         height, width: output size (RGB resized with area/linear, labels with nearest); None keeps the file size.
         decode_depth: ``path, expect_wh, out_wh -> (1, H, W)`` metres (0 = invalid).
-        decode_semantic: ``path, expect_wh, out_wh -> (H, W)`` int64 class ids of :mod:`omnidl.data.classes`.
+        decode_semantic: ``path, expect_wh, out_wh -> (H, W)`` int64 class ids of :mod:`omnidl.classes`.
         what: the dataset name used in messages.
     Depth and semantic maps must have the RGB image's size; a mismatch, an unreadable or truncated file raises
     :class:`CorruptSampleError` naming the file (the engine then skips the sample with a warning).

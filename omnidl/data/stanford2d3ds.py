@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import torch
 
-from .classes import CLASS_ID
+from omnidl.classes import CLASS_ID
 from .paired import PairedPanoramas, PanoramaFiles, check_folder, check_size, drop_incomplete, to_tensor_labels
 from .readers import read_depth_png, read_raw, resize_labels
 from .robust import CorruptSampleError

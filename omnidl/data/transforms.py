@@ -13,21 +13,18 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from omnidl.geometry.panorama import rotate_panorama
+from omnidl.geometry.rotations import axis_angle_to_matrix
+
 #: keys rotate_sample knows how to move (and how); ``normal`` vectors are also rotated into the new frame
 ROTATABLE = {"image": "bilinear", "depth": "nearest", "semantic": "nearest", "valid": "nearest",
              "instance": "nearest", "normal": "nearest", "layout_seg": "nearest", "edges": "bilinear"}
 
-def axis_angle_matrix(axis, angle_rad: float, dtype=torch.float64) -> torch.Tensor:
-    """Rodrigues: ``(3, 3)`` rotation by ``angle_rad`` about the unit vector ``axis`` (right-handed)."""
-    a = torch.as_tensor(axis, dtype=dtype)
-    a = a / a.norm()
-    k = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=dtype)
-    return torch.eye(3, dtype=dtype) + math.sin(angle_rad) * k + (1 - math.cos(angle_rad)) * (k @ k)
-
 
 def horizontal_rotation(angle_deg: float, axis: str | float = "x") -> torch.Tensor:
-    """Rotation about a horizontal camera axis: ``"x"`` (pitch), ``"z"`` (roll) or an azimuth in degrees
-    (axis ``(cos a, 0, sin a)`` in the OpenCV camera frame, y down)."""
+    """``(3, 3)`` float64 right-handed rotation by ``angle_deg`` about a horizontal camera axis: ``"x"``
+    (pitch), ``"z"`` (roll) or an azimuth in degrees (axis ``(cos a, 0, sin a)`` in the OpenCV camera
+    frame, y down)."""
     if axis == "x":
         vec = (1.0, 0.0, 0.0)
     elif axis == "z":
@@ -35,7 +32,7 @@ def horizontal_rotation(angle_deg: float, axis: str | float = "x") -> torch.Tens
     else:
         az = math.radians(float(axis))
         vec = (math.cos(az), 0.0, math.sin(az))
-    return axis_angle_matrix(vec, math.radians(angle_deg))
+    return axis_angle_to_matrix(torch.tensor(vec, dtype=torch.float64) * math.radians(angle_deg))
 
 
 def rotate_tensors(data: dict[str, Any], R: torch.Tensor, batched: bool, drop_unknown: bool = False
@@ -47,7 +44,6 @@ def rotate_tensors(data: dict[str, Any], R: torch.Tensor, batched: bool, drop_un
     Any other tensor key raises a ``ValueError`` naming it -- its geometry (e.g. layout boundaries) would
     be wrong -- unless ``drop_unknown`` removes it. Non-tensor values are kept.
     """
-    from omnidl.geometry import rotate_panorama
     other = [k for k, v in data.items() if isinstance(v, torch.Tensor) and k not in ROTATABLE]
     if other and not drop_unknown:
         raise ValueError(f"cannot rotate the panorama keys {other}: only {sorted(ROTATABLE)} are supported "

@@ -1,4 +1,5 @@
-"""Rotation helpers: conversions (kornia), roll/pitch/yaw, random rotations, angles, upright <-> world.
+"""Rotations, the single home of rotation maths in omnidl: conversions (kornia), elementary rotations,
+roll/pitch/yaw, up vector <-> tilt, random rotations, angles, upright camera <-> world.
 
 Conventions:
 
@@ -17,9 +18,14 @@ Conventions:
 
   Used as ``R_src_dst`` of :func:`omnidl.geometry.reproject`, ``euler_to_matrix(0, 0.3, 0)``
   renders a camera looking 0.3 rad above the source camera's optical axis.
+* **Up vector**: the up direction of an upright camera is :data:`UP` ``= (0, -1, 0)``. A camera of
+  orientation ``R = R_up_cam`` (a direction ``d`` of the camera is ``R @ d`` in the upright frame) has
+  the up vector (horizon-plane normal) ``n = R.T @ UP`` in its own frame (:func:`up_from_rotation`);
+  :func:`tilt_from_up` gives the roll and pitch of ``n`` (every ``n`` has one with pitch in
+  ``[-pi/2, pi/2]`` and roll in ``(-pi, pi]``: tilts beyond 90° are ``|roll| > pi/2``).
 * **World frame** (DESIGN.md): gravity-aligned, ``z`` up; poses map ``X_world = R @ X_cam + t``.
   An upright camera maps camera ``-y`` to world ``+z``; at yaw 0 camera ``x`` -> world ``+x`` and
-  camera ``z`` -> world ``+y`` (:data:`UPRIGHT_TO_WORLD`, the same convention as ``omnidl.synth``).
+  camera ``z`` -> world ``+y`` (:data:`UPRIGHT_TO_WORLD`, the convention of ``omnidl.synth`` too).
 """
 from __future__ import annotations
 
@@ -36,6 +42,9 @@ UPRIGHT_TO_WORLD = ((1.0, 0.0, 0.0),
                     (0.0, 0.0, 1.0),
                     (0.0, -1.0, 0.0))
 
+#: up direction of an upright camera in its own (OpenCV, y down) frame
+UP = (0.0, -1.0, 0.0)
+
 
 def _check_matrix(R: Tensor, name: str = "R") -> None:
     if R.dim() < 2 or R.shape[-2:] != (3, 3):
@@ -48,6 +57,13 @@ def axis_angle_to_matrix(axis_angle: Tensor) -> Tensor:
     if axis_angle.shape[-1] != 3:
         raise ValueError(f"axis_angle must have shape (..., 3), got {tuple(axis_angle.shape)}")
     return _kc.axis_angle_to_rotation_matrix(axis_angle)
+
+
+def skew(v: Tensor) -> Tensor:
+    """``(..., 3)`` -> ``(..., 3, 3)`` cross-product matrix ``[v]x`` (``[v]x @ w = v x w``; kornia)."""
+    if v.shape[-1] != 3:
+        raise ValueError(f"v must have shape (..., 3), got {tuple(v.shape)}")
+    return _kc.vector_to_skew_symmetric_matrix(v.reshape(-1, 3)).reshape(*v.shape, 3)
 
 
 def matrix_to_axis_angle(R: Tensor) -> Tensor:
@@ -153,6 +169,37 @@ def tilt_angle(R: Tensor) -> Tensor:
     return torch.atan2(safe_norm(torch.linalg.cross(up, vert, dim=-1)), (up * vert).sum(-1))
 
 
+# -- up vector <-> tilt ----------------------------------------------------------------------------
+def up_vector(like: Tensor) -> Tensor:
+    """``(3,)`` :data:`UP` in the dtype and device of ``like``."""
+    return torch.tensor(UP, dtype=like.dtype, device=like.device)
+
+
+def up_from_rotation(R: Tensor) -> Tensor:
+    """Up vector (horizon normal) ``R.T @ UP`` ``(..., 3)`` of orientations ``R = R_up_cam (..., 3, 3)``."""
+    _check_matrix(R)
+    return -R[..., 1, :]
+
+
+def tilt_from_up(n: Tensor) -> tuple[Tensor, Tensor]:
+    """Roll and pitch ``(...)`` of the camera whose up vector is ``n (..., 3)`` (any length).
+
+    With ``R = R_x(pitch) @ R_z(roll)``, ``R.T @ UP = (-sin r cos p, -cos r cos p, sin p)``, so
+    ``pitch = asin(n_z)`` and ``roll = atan2(-n_x, -n_y)`` (the full tilt range: zenith != nadir).
+    """
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    pitch = torch.asin(n[..., 2].clamp(-1.0, 1.0))
+    roll = torch.atan2(-n[..., 0], -n[..., 1])
+    return roll, pitch
+
+
+def tilt_rotation(n: Tensor) -> Tensor:
+    """``(..., 3, 3)`` ``R_x(pitch) @ R_z(roll)`` of :func:`tilt_from_up`: the zero-yaw orientation
+    whose up vector is ``n``, i.e. it maps ``n`` to :data:`UP`."""
+    roll, pitch = tilt_from_up(n)
+    return rotation_x(pitch) @ rotation_z(roll)
+
+
 # -- random rotations ---------------------------------------------------------------------------
 def random_rotation(n: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32,
                     device: torch.device | str | None = None) -> Tensor:
@@ -164,20 +211,24 @@ def random_rotation(n: int, generator: torch.Generator | None = None, dtype: tor
 def random_tilt_rotation(n: int, max_tilt: float, max_yaw: float = math.pi,
                          generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32,
                          device: torch.device | str | None = None) -> Tensor:
-    """``(n, 3, 3)`` rotations whose tilt (:func:`tilt_angle`) is at most ``max_tilt`` (radians).
+    """``(n, 3, 3)`` orientations ``R_up_cam`` whose tilt (:func:`tilt_angle`) is at most ``max_tilt``.
 
-    ``R = T @ R_y(yaw)``: ``yaw`` uniform in ``[-max_yaw, max_yaw]``, ``T`` a rotation about a
-    horizontal axis (camera x-z plane, uniform heading) whose angle is uniform over the
-    spherical cap of the up vector (``cos(tilt)`` uniform in ``[cos(max_tilt), 1]``).
+    The up vector is uniform over the spherical cap of angle ``max_tilt`` around :data:`UP`
+    (``cos(tilt)`` uniform in ``[cos(max_tilt), 1]``, uniform heading; ``max_tilt = pi`` gives any
+    up vector, and with ``max_yaw = pi`` rotations uniform over SO(3)), the yaw is uniform in
+    ``[-max_yaw, max_yaw]``: ``R = R_y(yaw) @ tilt_rotation(n_up)``. The draws are one
+    ``rand(n, 3)`` in float64 (tilt, heading, yaw), so a seeded generator gives the same rotations
+    in every dtype; radians.
     """
     if not 0 <= max_tilt <= math.pi:
         raise ValueError(f"max_tilt must be in [0, pi] radians, got {max_tilt}")
-    r = torch.rand(n, 3, generator=generator, dtype=torch.float64)
-    heading = 2 * math.pi * r[:, 0]
-    tilt = torch.acos(1 - r[:, 1] * (1 - math.cos(max_tilt)))
-    yaw = max_yaw * (2 * r[:, 2] - 1)
-    axis = torch.stack([torch.cos(heading), torch.zeros_like(heading), torch.sin(heading)], -1)
-    R = axis_angle_to_matrix(axis * tilt.unsqueeze(-1)) @ rotation_y(yaw)
+    u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
+    tilt = torch.acos((1 - u[:, 0] * (1 - math.cos(max_tilt))).clamp(-1, 1))
+    heading = (2 * u[:, 1] - 1) * math.pi
+    yaw = (2 * u[:, 2] - 1) * max_yaw
+    n_up = torch.stack([torch.sin(tilt) * torch.cos(heading), -torch.cos(tilt),
+                        torch.sin(tilt) * torch.sin(heading)], -1)
+    R = rotation_y(yaw) @ tilt_rotation(n_up)
     return R.to(dtype=dtype, device=device)
 
 
@@ -202,6 +253,23 @@ def camera_to_world_rotation(R_up_cam: Tensor | None = None, yaw: Tensor | float
     device = device or (like.device if like is not None else None)
     R = upright_to_world(dtype, device) @ rotation_y(_as_tensor(yaw).to(dtype=dtype, device=device))
     return R if R_up_cam is None else R @ R_up_cam
+
+
+def upright_rotation(R_world_cam: Tensor) -> Tensor:
+    """``R_up_cam (..., 3, 3)`` of camera-to-world rotations ``R_world_cam (..., 3, 3)``.
+
+    Splits a pose rotation into heading and tilt, ``R_world_cam = R_z(h) @ UPRIGHT_TO_WORLD @ R_up_cam``,
+    with ``h`` the world heading of the camera's forward axis ``z`` (of its ``x`` axis when it looks
+    straight up or down): ``R_up_cam`` is the rotation from the camera frame to the upright camera frame
+    with the same heading (the ground-truth orientation of the synthetic data). For a tilt that keeps
+    the forward heading (e.g. a pure pitch) it inverts :func:`camera_to_world_rotation`.
+    """
+    _check_matrix(R_world_cam, "R_world_cam")
+    f, x = R_world_cam[..., :, 2], R_world_cam[..., :, 0]
+    vertical = torch.hypot(f[..., 0], f[..., 1]) < 1e-6
+    heading = torch.where(vertical, torch.atan2(x[..., 1], x[..., 0]), torch.atan2(-f[..., 0], f[..., 1]))
+    R_world_up = rotation_z(heading) @ upright_to_world(R_world_cam.dtype, R_world_cam.device)
+    return R_world_up.transpose(-1, -2) @ R_world_cam
 
 
 def camera_to_world(points: Tensor, R: Tensor, t: Tensor | None = None) -> Tensor:

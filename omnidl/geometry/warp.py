@@ -167,7 +167,7 @@ def sample_grid(image: Tensor, grid: WarpGrid, mode: str = "bilinear") -> tuple[
         raise ValueError(f"image batch {b} and rotation batch {bg} do not broadcast")
     bo = max(b, bg)
     uv = grid.uv.to(image.device)
-    valid = grid.valid.to(image.device).expand(bo, -1, -1)
+    valid = grid.valid.to(image.device)
     hd, wd = uv.shape[1:3]
     if mode == "nearest":
         iu = torch.floor(uv[..., 0]).long()
@@ -185,21 +185,28 @@ def sample_grid(image: Tensor, grid: WarpGrid, mode: str = "bilinear") -> tuple[
         src = image
         if grid.wrap:  # one wrapped column on each side: interpolation across the seam
             src = torch.cat([image[..., -1:], image, image[..., :1]], dim=-1)
-            u = torch.remainder(u, w) + 1.0
+            lo, hi = torch.aminmax(u)
+            if float(lo) < 0 or float(hi) > w:  # camera projections already lie in [0, W]
+                u = torch.remainder(u, w)
+            u = u + 1.0
             wp = w + 2
         else:
             wp = w
-        gx = 2.0 * u / wp - 1.0
-        gy = 2.0 * v / h - 1.0
-        g = torch.stack([gx, gy], -1).expand(bo, -1, -1, -1)
-        out = F.grid_sample(src.expand(bo, -1, -1, -1), g, mode="bilinear", padding_mode="border",
-                            align_corners=False)
-    out = torch.where(valid.unsqueeze(1), out, torch.zeros((), dtype=out.dtype, device=out.device))
+        g = torch.stack([2.0 * u / wp - 1.0, 2.0 * v / h - 1.0], -1)
+        if b != bo:
+            src = src.expand(bo, -1, -1, -1)
+        if bg != bo:
+            g = g.expand(bo, -1, -1, -1)
+        out = F.grid_sample(src, g, mode="bilinear", padding_mode="border", align_corners=False)
+    if bg != bo:
+        valid = valid.expand(bo, -1, -1)
+    if not bool(valid.all()):  # a full panorama seen from a full panorama needs no masking
+        out = torch.where(valid.unsqueeze(1), out, torch.zeros((), dtype=out.dtype, device=out.device))
     return out, valid.unsqueeze(1)
 
 
 def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, rotation: Tensor | None = None,
-              mode: str = "bilinear") -> tuple[Tensor, Tensor]:
+              mode: str = "bilinear", cache: bool = True) -> tuple[Tensor, Tensor]:
     """Render ``dst_camera``'s image from ``image`` taken by the central ``src_camera``.
 
     Args:
@@ -210,6 +217,8 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, rotation: T
         rotation: ``R_src_dst`` ``(3, 3)`` or ``(B, 3, 3)``: a direction ``d`` in the dst frame is
             ``R_src_dst @ d`` in the src frame. ``None`` = the cameras share their orientation.
         mode: ``"bilinear"`` (images, depth) or ``"nearest"`` (labels, exact values).
+        cache: keep the sampling grid for the next call with the same geometry (:func:`warp_grid`);
+            ``False`` for rotations that change every call (e.g. a new one per video frame).
 
     Returns:
         ``(image (B, C, Hd, Wd), valid (B, 1, Hd, Wd) bool)``; invalid pixels are 0.
@@ -219,7 +228,7 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, rotation: T
     dtype = x.dtype if x.is_floating_point() else torch.float32
     if isinstance(rotation, Tensor) and rotation.dtype == torch.float64:
         dtype = torch.float64  # precise grid; sampled in the image's dtype
-    grid = warp_grid(src_camera, dst_camera, rotation, dtype=dtype, device=x.device)
+    grid = warp_grid(src_camera, dst_camera, rotation, dtype=dtype, device=x.device, cache=cache)
     out, valid = sample_grid(x, grid, mode)
     return _restore(out, ndim), _restore(valid, ndim)
 

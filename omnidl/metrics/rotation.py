@@ -7,8 +7,10 @@
 * success rate: fraction of frames whose error is below a threshold (frames without an estimate fail).
 
 :class:`HorizonMetrics` follows the metrics contract (``reset / update(outputs, batch) / compute``) for a
-HoLiNet: it fits the horizon on the sigmoid of ``outputs["horizon"]`` / ``outputs["vp"]`` and compares with
-``batch["up"]``; it also reports the constant-upright baseline (always predicting ``(0, -1, 0)``).
+HoLiNet: it fits the horizon on the sigmoid of ``outputs["horizon"]`` / ``outputs["vp"]`` with the geometry
+floor's :func:`~omnidl.geometry.horizon.fit_horizon` (the same function the ``horizon`` post-processing hook
+calls) and compares with ``batch["up"]``; it also reports the constant-upright baseline (always
+predicting ``(0, -1, 0)``).
 :class:`RotationMetrics` compares ``outputs["rotation"]`` with ``batch["rotation"]``.
 """
 from __future__ import annotations
@@ -18,6 +20,9 @@ from typing import Sequence
 
 import torch
 from torch import Tensor
+
+from omnidl.geometry.horizon import fit_horizon
+from omnidl.geometry.rotations import UP, rotation_angle
 
 
 def horizon_normal_error(n_est: Tensor, n_gt: Tensor, sign_agnostic: bool = False) -> Tensor:
@@ -32,12 +37,12 @@ def horizon_normal_error(n_est: Tensor, n_gt: Tensor, sign_agnostic: bool = Fals
 
 
 def rotation_error(R_gt: Tensor, R_est: Tensor) -> Tensor:
-    """``(...)`` geodesic angle in degrees, ``arccos((tr(R_gt R_est^T) - 1) / 2)``."""
-    M = R_gt @ R_est.transpose(-1, -2)
-    cos = (M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2] - 1) / 2
-    sin = torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]],
-                      -1).norm(dim=-1) / 2
-    return torch.rad2deg(torch.atan2(sin, cos))
+    """``(...)`` geodesic angle in degrees, ``arccos((tr(R_gt R_est^T) - 1) / 2)``.
+
+    :func:`omnidl.geometry.rotations.rotation_angle` of ``R_est^T R_gt`` (a conjugate of ``R_gt R_est^T``,
+    so the same angle), in its accurate ``atan2`` form.
+    """
+    return torch.rad2deg(rotation_angle(R_est, R_gt))
 
 
 def success_rate(errors: Tensor, threshold_deg: float) -> float:
@@ -63,7 +68,7 @@ class HorizonMetrics:
     Args:
         thresholds: success thresholds in degrees.
         logits: the model outputs logits (sigmoid applied here).
-        fit: :class:`~omnidl.postprocess.gyroscope.HorizonFitOptions` overrides.
+        fit: :class:`~omnidl.geometry.horizon.HorizonFitOptions` overrides.
     Reads ``outputs["horizon"], outputs["vp"]`` ``(B, 1, h, w)`` and ``batch["up"]`` ``(B, 3)``; samples
     with ``batch["geometry_valid"] == False`` (cropped) are skipped. Maps without a usable line count with
     the fit's fallback direction (``horizon_no_line`` gives their fraction).
@@ -81,7 +86,6 @@ class HorizonMetrics:
         self.invalid: list[Tensor] = []
 
     def update(self, outputs: dict, batch: dict) -> None:
-        from omnidl.postprocess.gyroscope.horizon import fit_horizon
         if "up" not in batch:
             raise KeyError(f"HorizonMetrics: the batch has no 'up' ground truth (keys: {sorted(batch)})")
         hl, vp = outputs["horizon"].detach().float(), outputs["vp"].detach().float()
@@ -96,7 +100,7 @@ class HorizonMetrics:
         # frames without a line keep the fit's fallback (VP direction, else upright) in the error statistics
         self.errors.append(horizon_normal_error(res["up"].float(), gt[keep]))
         self.invalid.append(~res["valid"].cpu())
-        up = torch.tensor([0.0, -1.0, 0.0]).expand_as(gt[keep])
+        up = torch.tensor(UP).expand_as(gt[keep])
         self.baseline.append(horizon_normal_error(up, gt[keep]))
 
     def compute(self) -> dict[str, float]:

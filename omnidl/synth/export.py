@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from omnidl.data.classes import CLASS_COLORS, CLASS_NAMES
+from omnidl.classes import CLASS_COLORS, CLASS_NAMES
 from omnidl.utils.io import atomic_imwrite, atomic_write_bytes, atomic_write_text
 
 DEPTH_CODED_MAX = 10.0

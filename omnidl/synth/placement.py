@@ -1,7 +1,9 @@
 """Camera poses in a scene: free random position and height, gravity-aligned or tilted.
 
 Pose convention (DESIGN.md): ``X_world = R X_cam + t``; an upright camera maps camera ``-y`` to
-world ``+z``; at yaw 0 camera ``x`` -> world ``+x`` and camera ``z`` (forward) -> world ``+y``.
+world ``+z``; at yaw 0 camera ``x`` -> world ``+x`` and camera ``z`` (forward) -> world ``+y``
+(:data:`omnidl.geometry.rotations.UPRIGHT_TO_WORLD`). Rotations come from :mod:`omnidl.geometry.rotations`
+(torch, float64) and are turned into numpy here, at the call site.
 """
 from __future__ import annotations
 
@@ -10,37 +12,10 @@ import math
 import numpy as np
 import torch
 
-from .geometry2d import distance_to_edges, points_in_polygon
+from omnidl.geometry.rotations import axis_angle_to_matrix, rotation_z, upright_to_world
+
+from ..geometry.polygon import distance_to_edges, points_in_polygon
 from .scene import Scene
-
-#: upright camera frame -> world at yaw 0 (columns: images of camera x, y, z)
-R_UPRIGHT = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-
-
-def rot_z(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def axis_angle(axis, angle: float) -> np.ndarray:
-    """Rotation matrix (Rodrigues) about a unit ``axis`` by ``angle`` radians."""
-    k = np.asarray(axis, np.float64)
-    k = k / np.linalg.norm(k)
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
-
-
-def upright_rotation(R: np.ndarray) -> np.ndarray:
-    """``R_up_cam`` of a camera-to-world rotation: the rotation from the camera frame to the upright camera
-    frame with the same heading (the yaw of the camera's forward axis), so ``R = Rz(yaw) R_UPRIGHT R_up_cam``."""
-    f = R[:, 2]
-    if math.hypot(f[0], f[1]) < 1e-6:   # looking straight up/down: use the x axis heading
-        x = R[:, 0]
-        yaw = math.atan2(x[1], x[0])
-    else:
-        yaw = math.atan2(-f[0], f[1])
-    return (rot_z(yaw) @ R_UPRIGHT).T @ R
-
 
 def rig_radius(camera) -> float:
     """Largest distance of a ray origin from the camera centre (0 for central cameras).
@@ -99,7 +74,8 @@ def place_camera(scene: Scene, camera, seed: int | np.random.Generator, rotation
         elif rotation == "random":
             a = rng.uniform(0, 2 * math.pi)
             tilt = math.radians(max_tilt_deg) * math.sqrt(rng.uniform(0, 1))
-            r_up_cam = axis_angle((math.cos(a), 0.0, math.sin(a)), tilt)
+            axis = torch.tensor((math.cos(a), 0.0, math.sin(a)), dtype=torch.float64)
+            r_up_cam = axis_angle_to_matrix(axis * tilt).numpy()
         else:
             raise ValueError(f"rotation must be 'upright', 'random' or a 3x3 matrix, got {rotation!r}")
     else:
@@ -107,6 +83,7 @@ def place_camera(scene: Scene, camera, seed: int | np.random.Generator, rotation
         if r_up_cam.shape != (3, 3):
             raise ValueError(f"rotation matrix must be (3, 3), got {r_up_cam.shape}")
     pose = np.eye(4)
-    pose[:3, :3] = rot_z(yaw) @ R_UPRIGHT @ r_up_cam
+    heading = rotation_z(torch.tensor(yaw, dtype=torch.float64)) @ upright_to_world(torch.float64)
+    pose[:3, :3] = heading.numpy() @ r_up_cam
     pose[:3, 3] = (p[0], p[1], z)
     return pose

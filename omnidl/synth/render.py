@@ -8,11 +8,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from omnidl.data.classes import CLASS_ID
+from omnidl.classes import CLASS_ID
+from omnidl.geometry.rotations import upright_rotation
 
 from . import materials as M
 from .layout import layout_ground_truth
-from .placement import upright_rotation
 from .raycast import FLOOR, WALL, box_normals, cast_boxes, cast_room
 from .scene import Scene
 
@@ -159,7 +159,7 @@ def render(scene: Scene, camera, pose: np.ndarray, layout: bool = True, dtype: t
         kind_map = (room.kind * hit).reshape(H, W)
         out["layout_seg"] = kind_map
         out.update(layout_ground_truth(scene, camera, pose, kind_map, room.wall.reshape(H, W)))
-        r_up = upright_rotation(pose[:3, :3])
+        r_up = upright_rotation(torch.as_tensor(pose[:3, :3], dtype=torch.float64))
         out["pose"] = torch.as_tensor(pose, dtype=torch.float32)
         out["rotation"] = torch.as_tensor(r_up, dtype=torch.float32)
         out["horizon_normal"] = torch.as_tensor(pose[:3, :3].T @ np.array([0.0, 0.0, 1.0]), dtype=torch.float32)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry2d import edge_lengths, is_simple, polygon_area, remove_collinear, turn_angles_deg, cross2
+from ..geometry.polygon import edge_lengths, is_simple, polygon_area, remove_collinear, turn_angles_deg, cross2
 
 
 @dataclass(frozen=True)

@@ -9,10 +9,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from omnidl.data.classes import CLASS_ID
+from omnidl.classes import CLASS_ID
 
 from . import materials as M
-from .geometry2d import edge_vectors, polygon_inside, polygons_overlap, rect_corners, points_in_polygon
+from ..geometry.polygon import edge_vectors, polygon_inside, polygons_overlap, rect_corners, points_in_polygon
 from .room import RoomLimits, is_manhattan, sample_floor_plan
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from omnidl.data.classes import CLASS_COLORS
+from omnidl.classes import CLASS_COLORS
 
 
 def _turbo_lut() -> torch.Tensor:
@@ -33,7 +33,7 @@ def depth_to_color(depth: torch.Tensor, vmax: float | None = None, vmin: float =
 
 
 def palette(num_classes: int | None = None) -> torch.Tensor:
-    """``(C, 3)`` float colours of :data:`omnidl.data.classes.CLASS_COLORS` (grey-cycled beyond them)."""
+    """``(C, 3)`` float colours of :data:`omnidl.classes.CLASS_COLORS` (grey-cycled beyond them)."""
     cols = torch.tensor(CLASS_COLORS, dtype=torch.float32) / 255.0
     if num_classes is not None and num_classes > len(cols):
         extra = torch.rand(num_classes - len(cols), 3, generator=torch.Generator().manual_seed(0))

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from omnidl.data.horizon import heatmaps_from_up, horizon_heatmaps
-from omnidl.postprocess.gyroscope.angles import euler_to_matrix, random_rotations
-from omnidl.postprocess.gyroscope.sampling import rotate_equirect
+from omnidl.geometry.panorama import rotate_panorama
+from omnidl.geometry.rotations import euler_to_matrix, random_tilt_rotation
 
 
 def _lonlat_grid(H, W):
@@ -36,14 +36,14 @@ def test_maps_follow_the_rotated_panorama():
                         torch.tensor(1.2, dtype=torch.float64))
     hl0, vp0 = horizon_heatmaps(torch.eye(3, dtype=torch.float64)[None], 128, 256, sigma_deg=6)
     hl, vp = horizon_heatmaps(R[None], 128, 256, sigma_deg=6)
-    hl_r = rotate_equirect(hl0, R)
-    vp_r = rotate_equirect(vp0, R)
+    hl_r, _ = rotate_panorama(hl0, R)
+    vp_r, _ = rotate_panorama(vp0, R)
     assert (hl - hl_r).abs().mean() < 3e-3 and (vp - vp_r).abs().mean() < 3e-3
 
 
 @pytest.mark.parametrize("size", [(16, 32), (64, 128), (50, 100)])
 def test_any_resolution_and_up_vectors(size):
-    R = random_rotations(3, generator=torch.Generator().manual_seed(0))
+    R = random_tilt_rotation(3, math.pi, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     hl, vp = horizon_heatmaps(R, *size)
     hl2, vp2 = heatmaps_from_up(-R[:, 1, :], *size)  # same from the up vectors
     assert torch.allclose(hl, hl2) and torch.allclose(vp, vp2)

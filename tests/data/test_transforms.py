@@ -3,8 +3,8 @@ import math
 import pytest
 import torch
 
-from omnidl.data.transforms import (RandomRotation, axis_angle_matrix, horizontal_rotation, rotate_sample,
-                                    rotate_tensors)
+from omnidl.data.transforms import RandomRotation, horizontal_rotation, rotate_sample, rotate_tensors
+from omnidl.geometry.rotations import axis_angle_to_matrix
 
 
 def _sample(h=16, w=32):
@@ -16,11 +16,12 @@ def _sample(h=16, w=32):
 
 def test_axis_angle_matches_closed_form_pitch():
     a = math.radians(30)
-    R = axis_angle_matrix((1, 0, 0), a)
+    R = axis_angle_to_matrix(torch.tensor([a, 0.0, 0.0], dtype=torch.float64))
     ref = torch.tensor([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]], dtype=torch.float64)
     assert torch.allclose(R, ref, atol=1e-12)
     R2 = horizontal_rotation(17.0, 90.0)  # azimuth 90 deg: the camera z axis
-    assert torch.allclose(R2, axis_angle_matrix((0, 0, 1), math.radians(17.0)), atol=1e-12)
+    assert torch.allclose(R2, axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(17.0)], dtype=torch.float64)),
+                          atol=1e-12)
     assert torch.allclose(R2 @ R2.T, torch.eye(3, dtype=torch.float64), atol=1e-12)
 
 

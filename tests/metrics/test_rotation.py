@@ -6,12 +6,12 @@ import torch
 from omnidl.data.horizon import horizon_heatmaps
 from omnidl.metrics.rotation import (HorizonMetrics, RotationMetrics, horizon_normal_error, rotation_error,
                                      success_rate)
-from omnidl.postprocess.gyroscope.angles import axis_angle_to_matrix, random_rotations, up_from_rotation
+from omnidl.geometry.rotations import axis_angle_to_matrix, random_tilt_rotation, up_from_rotation
 
 
 def test_rotation_error_closed_form_and_arccos_formula():
     g = torch.Generator().manual_seed(0)
-    R = random_rotations(20, generator=g)
+    R = random_tilt_rotation(20, math.pi, generator=g, dtype=torch.float64)
     angle = torch.rand(20, generator=g, dtype=torch.float64) * math.pi * 0.999
     axis = torch.nn.functional.normalize(torch.randn(20, 3, generator=g, dtype=torch.float64), dim=-1)
     R2 = axis_angle_to_matrix(axis * angle[:, None]) @ R
@@ -31,7 +31,7 @@ def test_horizon_normal_error_and_success_rate():
 
 
 def test_horizon_metrics_on_ground_truth_maps_and_upright_baseline():
-    R = random_rotations(6, math.radians(60), generator=torch.Generator().manual_seed(1)).float()
+    R = random_tilt_rotation(6, math.radians(60), generator=torch.Generator().manual_seed(1))
     hl, vp = horizon_heatmaps(R, 32, 64)
     logit = lambda p: torch.logit(p.clamp(1e-4, 1 - 1e-4))
     m = HorizonMetrics()
@@ -47,7 +47,7 @@ def test_horizon_metrics_on_ground_truth_maps_and_upright_baseline():
 
 
 def test_rotation_metrics():
-    R = random_rotations(4, generator=torch.Generator().manual_seed(2))
+    R = random_tilt_rotation(4, math.pi, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     m = RotationMetrics(thresholds=(1.0,))
     m.update({"rotation": R}, {"rotation": R})
     out = m.compute()

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from omnidl.cameras import build
-from omnidl.data.classes import CLASS_ID
+from omnidl.classes import CLASS_ID
 from omnidl.synth import place_camera, render, sample_room
-from omnidl.synth.placement import R_UPRIGHT, rot_z
+from omnidl.geometry.rotations import rotation_z, upright_to_world
 
 CAMERAS = {
     "equirect": {"type": "equirect", "width": 128, "height": 64},
@@ -118,7 +118,7 @@ def test_boundaries_match_projected_layout_lines(name, room):
     cam = build({**CAMERAS[name], "width": 256, "height": 128})
     sc = _scene_with(ROOMS[room])
     pose = np.eye(4)
-    pose[:3, :3] = rot_z(0.3) @ R_UPRIGHT
+    pose[:3, :3] = (rotation_z(torch.tensor(0.3, dtype=torch.float64)) @ upright_to_world(torch.float64)).numpy()
     pose[:3, 3] = (-0.4, 0.2, 1.4)
     out = render(sc, cam, pose)
     ref = _reference_boundary(cam, pose, sc)
@@ -184,7 +184,7 @@ def test_normals_are_unit_and_face_the_camera():
     "fisheye_equiangular",
 ])
 def test_any_camera_renders_with_invalid_pixels_zeroed(cfg):
-    from omnidl.synth.cameras import resolve_camera
+    from omnidl.cameras import resolve_camera
     cam = resolve_camera(cfg, 64, 64) if isinstance(cfg, str) else build(cfg)
     sc = sample_room(11)
     pose = place_camera(sc, cam, 11, rotation="random")
@@ -228,14 +228,14 @@ def test_same_inputs_give_bit_identical_renders():
 
 
 def _config_cameras():
-    from omnidl.synth.cameras import CAMERA_CONFIG_DIR
+    from omnidl.cameras import CAMERA_CONFIG_DIR
     return sorted(p.stem for p in CAMERA_CONFIG_DIR.glob("*.yaml"))
 
 
 @pytest.mark.parametrize("name", _config_cameras())
 def test_every_configured_camera_renders_consistent_depth(name):
     from shapely.geometry import Point, Polygon
-    from omnidl.synth.cameras import resolve_camera
+    from omnidl.cameras import resolve_camera
     cam = resolve_camera(name, 32, 32)
     sc = sample_room(4)
     pose = place_camera(sc, cam, 4)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from omnidl.cameras import Equirectangular
-from omnidl.data.classes import CLASS_COLORS
+from omnidl.classes import CLASS_COLORS
 from omnidl.viz import (PanoramaVisualizer, depth_to_color, depth_to_points, make_grid, overlay, plot_curves,
                         read_ply, semantic_to_color, to_uint8_bgr, write_ply)
 

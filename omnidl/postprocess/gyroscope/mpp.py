@@ -25,9 +25,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from omnidl.cameras.equirectangular import Equirectangular
+from omnidl.geometry.panorama import sample_panorama
+
 from .icosahedron import icosahedron_vertices
 from .photometric import apply_update, blur, rotation_jacobian, to_gray
-from .sampling import equirect_directions, sample_equirect
 
 
 def abs_zn(I: Tensor) -> Tensor:
@@ -48,7 +50,7 @@ def mpp_samples(image: Tensor, level: int = 3, prefilter: bool = True) -> tuple[
     if prefilter:
         spacing = 1.1 / (2 ** level)  # ~ edge angle of the subdivided mesh (rad)
         gray = blur(gray, 0.5 * spacing * gray.shape[-1] / (2 * math.pi))
-    return X, abs_zn(sample_equirect(gray, X)[:, 0])
+    return X, abs_zn(sample_panorama(gray, X)[:, 0])
 
 
 def mpp_field(X: Tensor, I: Tensor, points: Tensor, lambda_g: float, with_grad: bool = False):
@@ -71,7 +73,7 @@ def mpp_field(X: Tensor, I: Tensor, points: Tensor, lambda_g: float, with_grad: 
 
 def mpp_table(X: Tensor, I: Tensor, lambda_g: float, height: int = 64) -> Tensor:
     """``(B, 4, h, 2h)`` equirect table of ``G`` and its ambient gradient (channels ``G, gx, gy, gz``)."""
-    d = equirect_directions(height, 2 * height, X.dtype, X.device).reshape(-1, 3)
+    d = Equirectangular(width=2 * height, height=height).unproject_grid(X.dtype, X.device).direction.reshape(-1, 3)
     G, grad = mpp_field(X, I, d.unsqueeze(0).expand(I.shape[0], -1, -1), lambda_g, with_grad=True)
     return torch.cat([G.unsqueeze(-1), grad], -1).transpose(1, 2).reshape(I.shape[0], 4, height, 2 * height)
 
@@ -128,7 +130,7 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
         if table is None:
             G, grad = mpp_field(X, Ic, p, lambda_g, with_grad=True)  # (B, T, M), (B, T, M, 3)
         else:
-            v = sample_equirect(table, p.reshape(B, -1, 3)).reshape(B, 4, T, -1)
+            v = sample_panorama(table, p.reshape(B, -1, 3)).reshape(B, 4, T, -1)
             G, grad = v[:, 0], v[:, 1:].permute(0, 2, 3, 1)
         e = G - G_ref.unsqueeze(1)
         cost = (e * e).sum(-1)

@@ -1,6 +1,6 @@
 """Shared pieces of the photometric gyroscopes: grey levels, blur, the rotation update, GN step.
 
-Rotation parametrisation of both solvers: the orientation ``R = R_ref_cur`` (see :mod:`.angles`) is
+Rotation parametrisation of both solvers: the orientation ``R = R_ref_cur`` (see the package docstring) is
 updated on the left, ``R <- exp([w]x) R`` (``w`` in the reference frame). A reference-frame direction
 ``s`` is seen in the current frame at ``p = R.T s``; for a function ``f`` on the current sphere with
 ambient gradient ``grad f(p)``, ``d f(R(w).T s) / dw = (R grad f(p)) x s`` (row vector), which is the
@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .angles import axis_angle_to_matrix
+from omnidl.geometry.rotations import axis_angle_to_matrix
 
 
 def to_gray(image: Tensor) -> Tensor:

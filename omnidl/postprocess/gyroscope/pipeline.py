@@ -1,9 +1,9 @@
 """HoLiNet -> MPP -> PVG: the visual gyroscope of thesis Ch. 6 and :func:`stabilise` over a sequence.
 
-For each frame (equirectangular RGB), with ``R = R_ref_cur`` (see :mod:`.angles`):
+For each frame (equirectangular RGB), with ``R = R_ref_cur`` (see the package docstring):
 
 1. *Tilt*: the up vectors of the frame and of the reference from the horizon heat maps
-   (:func:`fit_horizon` on HoLiNet's sigmoid outputs, or any ``horizon_fn``), as rotations
+   (:func:`~omnidl.geometry.horizon.fit_horizon` on HoLiNet's sigmoid outputs, or any ``horizon_fn``), as rotations
    ``T = tilt_rotation(up)`` that make each image upright.
 2. *Yaw* (MPP): ``R = T_ref.T R_y(yaw) T_cur``, yaw found by :func:`mpp_yaw` about the reference's vertical.
 3. *Refinement* (PVG): all three angles by :func:`pvg_refine`, starting from step 2.
@@ -22,11 +22,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .angles import matrix_to_euler, tilt_rotation, up_vector
-from .horizon import HorizonFitOptions, fit_horizon
+from omnidl.geometry.horizon import HorizonFitOptions, fit_horizon
+from omnidl.geometry.panorama import rotate_panorama
+from omnidl.geometry.rotations import matrix_to_euler, tilt_rotation, up_vector
+
 from .mpp import mpp_samples, mpp_yaw
 from .pvg import pvg_refine
-from .sampling import rotate_equirect
 
 HorizonFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 
@@ -188,7 +189,7 @@ def stabilise(frames: Iterable[Tensor], reference: Tensor, horizon_fn: HorizonFn
         on_frame: ``callback(record, frame, stabilised or None)`` called in order (writers, viewers).
     Returns:
         one :class:`FrameEstimate` per frame; the stabilised frame is
-        ``rotate_equirect(frame, R.T)`` with ``R = record.rotation``.
+        ``rotate_panorama(frame, R.T)`` with ``R = record.rotation``.
     """
     if reference is None:
         raise ValueError("stabilise: a reference image is required (got None)")
@@ -220,7 +221,7 @@ def stabilise(frames: Iterable[Tensor], reference: Tensor, horizon_fn: HorizonFn
                 rec = FrameEstimate(i, name, "ok", "", *(math.degrees(float(est[a][k])) for a in ("roll", "pitch", "yaw")),
                                     rotation=R.tolist(), horizon_valid=bool(est["horizon_valid"][k]),
                                     mpp_cost=float(est["mpp_cost"][k]), pvg_cost=float(est["pvg_cost"][k]))
-                stab = rotate_equirect(frame[None].float(), R.T)[0]
+                stab, _ = rotate_panorama(frame.float(), R.T, cache=False)
             _emit(rec, frame, stab)
         pending.clear()
 

@@ -21,9 +21,10 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from omnidl.geometry.panorama import sample_panorama
+
 from .icosahedron import icosahedron_vertices
 from .photometric import apply_update, blur, gauss_newton_step, rotation_jacobian, to_gray
-from .sampling import sample_equirect
 
 
 def tangent_basis(p: Tensor) -> tuple[Tensor, Tensor]:
@@ -47,7 +48,7 @@ def spherical_gradient(image: Tensor, p: Tensor, h: float | None = None) -> tupl
     pts = torch.stack([p, p + h * t1, p - h * t1, p + h * t2, p - h * t2], 1)  # (B, 5, N, 3)
     pts = pts / pts.norm(dim=-1, keepdim=True)
     B, _, N, _ = pts.shape
-    v = sample_equirect(image, pts.reshape(B, -1, 3))[:, 0].reshape(B, 5, N)
+    v = sample_panorama(image, pts.reshape(B, -1, 3))[:, 0].reshape(B, 5, N)
     # chord length of a tangent step of h after normalisation: 2 * sin(atan(h)) / ... ~ arc atan(h)
     step = 2 * math.atan(h)
     grad = ((v[:, 1] - v[:, 2]) / step)[..., None] * t1 + ((v[:, 3] - v[:, 4]) / step)[..., None] * t2
@@ -88,7 +89,7 @@ def pvg_refine(current: Tensor, reference: Tensor, R_init: Tensor | None = None,
     cost = torch.zeros(B, dtype=dtype, device=cur.device)
     for sigma in blur_px:
         c_img, r_img = blur(cur, sigma), blur(ref, sigma)
-        I_ref = sample_equirect(r_img, X)[:, 0]  # (B, N)
+        I_ref = sample_panorama(r_img, X)[:, 0]  # (B, N)
         for _ in range(max_iter):
             it_total += 1
             p = torch.einsum("bji,nj->bni", R, X)

@@ -12,7 +12,7 @@ import math
 import torch
 from torch import Tensor
 
-from .sampling import equirect_directions
+from omnidl.cameras.equirectangular import Equirectangular
 
 
 def procedural_panorama(rotation: Tensor | None, height: int, width: int, seed: int = 0, waves: int = 24,
@@ -28,7 +28,7 @@ def procedural_panorama(rotation: Tensor | None, height: int, width: int, seed: 
     R = torch.eye(3, dtype=torch.float64)[None] if rotation is None else rotation.to(torch.float64)
     if R.ndim == 2:
         R = R[None]
-    d = equirect_directions(height, width, torch.float64).reshape(-1, 3)
+    d = Equirectangular(width=width, height=height).unproject_grid(torch.float64).direction.reshape(-1, 3)
     w = torch.einsum("bij,nj->bni", R, d)  # world directions (B, N, 3)
     arg = torch.einsum("bnk,wk->bnw", w, u) * f  # (B, N, waves)
     img = 0.5 + (torch.sin(arg[..., None] + ph) * amp).sum(-2)  # (B, N, 3)

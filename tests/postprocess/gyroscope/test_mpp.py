@@ -2,11 +2,11 @@ import math
 
 import torch
 
-from omnidl.postprocess.gyroscope.angles import axis_angle_to_matrix, rot_y
+from omnidl.geometry.panorama import sample_panorama
+from omnidl.geometry.rotations import axis_angle_to_matrix, rotation_y
 from omnidl.postprocess.gyroscope.icosahedron import icosahedron_vertices
 from omnidl.postprocess.gyroscope.mpp import abs_zn, mpp_field, mpp_table, mpp_yaw
 from omnidl.postprocess.gyroscope.photometric import rotation_jacobian
-from omnidl.postprocess.gyroscope.sampling import sample_equirect
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 from omnidl.metrics.rotation import rotation_error
 
@@ -52,7 +52,7 @@ def test_table_matches_exact_field():
     table = mpp_table(X, I, 0.325, 64)
     p = torch.nn.functional.normalize(torch.randn(1, 50, 3, dtype=torch.float64), dim=-1)
     G, _ = mpp_field(X, I, p, 0.325)
-    Gt = sample_equirect(table, p)[:, 0]
+    Gt = sample_panorama(table, p)[:, 0]
     assert ((Gt - G).abs() / G.abs().max()).max() < 2e-3
 
 
@@ -63,5 +63,5 @@ def test_mpp_recovers_any_pure_yaw_below_3_degrees():
     cur = torch.stack([torch.roll(ref[0], int(k), dims=-1) for k in shifts])
     yaw_true = -2 * math.pi * shifts.double() / 128  # rolling columns right = turning the camera left
     res = mpp_yaw(cur, ref, level=3, lambda_g=0.325)
-    err = rotation_error(rot_y(yaw_true), res.rotation.double())
+    err = rotation_error(rotation_y(yaw_true), res.rotation.double())
     assert err.max() < 3.0, err

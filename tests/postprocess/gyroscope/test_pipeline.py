@@ -5,9 +5,9 @@ import torch
 
 from omnidl.data.horizon import horizon_heatmaps
 from omnidl.metrics.rotation import rotation_error
-from omnidl.postprocess.gyroscope.angles import random_rotations
+from omnidl.geometry.panorama import rotate_panorama
+from omnidl.geometry.rotations import random_tilt_rotation
 from omnidl.postprocess.gyroscope.pipeline import Gyroscope, GyroscopeOptions, stabilise
-from omnidl.postprocess.gyroscope.sampling import rotate_equirect
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 
 OPTS = GyroscopeOptions(work_height=64, pvg_level=4, mpp_max_iter=20, pvg_max_iter=15)
@@ -29,7 +29,7 @@ class GroundTruthMaps:
 
 def test_pipeline_on_ground_truth_maps_recovers_random_rotations():
     g = torch.Generator().manual_seed(0)
-    R_gt = random_rotations(3, math.pi, generator=g)
+    R_gt = random_tilt_rotation(3, math.pi, generator=g, dtype=torch.float64)
     ref = procedural_panorama(None, 64, 128, seed=4)[0]
     frames = list(procedural_panorama(R_gt, 64, 128, seed=4))
     fn = GroundTruthMaps([ref] + frames, [torch.eye(3, dtype=torch.float64)] + list(R_gt))
@@ -39,13 +39,13 @@ def test_pipeline_on_ground_truth_maps_recovers_random_rotations():
     err = rotation_error(R_gt, est["rotation"].double())
     assert err.median() < 0.5 and err.max() < 1.0, err
     # stabilised frames look like the reference
-    stab = rotate_equirect(torch.stack(frames), est["rotation"].transpose(-1, -2))
+    stab, _ = rotate_panorama(torch.stack(frames), est["rotation"].transpose(-1, -2))
     assert (stab[:, :, 8:-8] - ref[:, 8:-8]).abs().mean() < 0.02
 
 
 def test_stabilise_flags_bad_frames_and_continues():
     ref = procedural_panorama(None, 64, 128, seed=5)[0]
-    R = random_rotations(1, math.radians(20), generator=torch.Generator().manual_seed(1))
+    R = random_tilt_rotation(1, math.radians(20), generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     good = procedural_panorama(R, 64, 128, seed=5)[0]
     black = torch.zeros(3, 64, 128)
     wrong = torch.rand(3, 32, 64)

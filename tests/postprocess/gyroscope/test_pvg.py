@@ -2,9 +2,9 @@ import math
 
 import torch
 
-from omnidl.postprocess.gyroscope.angles import axis_angle_to_matrix, random_rotations
+from omnidl.cameras.equirectangular import Equirectangular
+from omnidl.geometry.rotations import axis_angle_to_matrix, random_tilt_rotation
 from omnidl.postprocess.gyroscope.pvg import pvg_refine, spherical_gradient, tangent_basis
-from omnidl.postprocess.gyroscope.sampling import equirect_directions
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 from omnidl.metrics.rotation import rotation_error
 
@@ -12,7 +12,7 @@ from omnidl.metrics.rotation import rotation_error
 def test_spherical_gradient_of_a_linear_function():
     # f(d) = a . d: tangent gradient a - (a . p) p
     a = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
-    img = (equirect_directions(256, 512, torch.float64) @ a)[None, None]
+    img = (Equirectangular(width=512, height=256).unproject_grid(torch.float64).direction @ a)[None, None]
     p = torch.nn.functional.normalize(torch.randn(1, 40, 3, dtype=torch.float64,
                                                   generator=torch.Generator().manual_seed(0)), dim=-1)
     p = p[:, (p[0, :, 1].abs() < 0.95)]  # away from the pole rows (border clamping)
@@ -27,7 +27,7 @@ def test_spherical_gradient_of_a_linear_function():
 def test_pvg_refines_10_degree_perturbations_below_0_2_degrees():
     g = torch.Generator().manual_seed(0)
     ref = procedural_panorama(None, 64, 128, seed=2)
-    R_gt = random_rotations(3, math.pi, generator=g)
+    R_gt = random_tilt_rotation(3, math.pi, generator=g, dtype=torch.float64)
     cur = procedural_panorama(R_gt, 64, 128, seed=2)
     w = (2 * torch.rand(3, 3, generator=g, dtype=torch.float64) - 1) * math.radians(10)
     w[:, 0] = math.radians(10) * torch.sign(w[:, 0])  # at least one axis at the full 10 degrees

@@ -2,6 +2,8 @@
 
 The order is fixed here and nowhere else (alphabetical, as the Stanford2D3DS
 ``semantic_labels.json`` names sort and as FreDSNet's 14-way output uses them).
+It sits on the ground floor (it imports nothing of omnidl), so datasets, the renderer, the exporter and
+the colour maps all read the same list.
 """
 from __future__ import annotations
 
