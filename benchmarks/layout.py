@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omnidl.postprocess.layout import estimate_layout  # noqa: E402
 from omnidl.postprocess.layout import ransac as ransac_mod  # noqa: E402
-from omnidl.postprocess.layout.simulate import Room, simulate_columns  # noqa: E402
+from omnidl.apps.layout.simulate import Room, ring_camera, simulate_columns  # noqa: E402
 from omnidl.postprocess.layout.solvers import WallFit, solve_walls  # noqa: E402
 
 ROOMS = {
@@ -50,7 +50,7 @@ def _looped_solve_walls(dir_c, mom_c, dir_f, mom_f, w_c=None, w_f=None):
 
 
 def time_layout(world: str, reps: int, looped: bool) -> tuple[float, bool]:
-    rays, prob = simulate_columns(ROOMS[world], 1024, 512, 1.0, quantise=True)
+    rays, prob = simulate_columns(ROOMS[world], ring_camera(1.0, 1024), quantise=True)
     kw = {"ransac_outliers": 0.5} if looped else {}      # 0.5 -> 129 hypotheses per wall (scaledLayout)
     orig = ransac_mod.solve_walls
     if looped:

@@ -10,14 +10,13 @@ matters for the targets), and the boundary targets are computed through the came
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
-from ..postprocess.layout.rays import R_WORLD_FROM_CAM
+from ..cameras import Equirectangular
+from ..geometry.rotations import UPRIGHT_TO_WORLD
 from .layout_targets import boundary_targets, corner_heat
 
 
@@ -54,8 +53,7 @@ def corners_from_label_cor(cor: np.ndarray, width: int, height: int, camera_heig
     mean over corners of the height at which each ceiling pixel meets its floor corner's vertical.
     """
     c = np.asarray(cor, float).reshape(-1, 2, 2)
-    lon = 2 * math.pi * (c[..., 0] + 0.5) / width - math.pi
-    lat = math.pi / 2 - math.pi * (c[..., 1] + 0.5) / height
+    lon, lat = (a.numpy() for a in Equirectangular(width=width, height=height).uv_to_lonlat(torch.from_numpy(c + 0.5)))
     if np.any(lat[:, 1] >= 0) or np.any(lat[:, 0] <= 0):
         raise ValueError("label_cor: every ceiling point must be above and every floor point below the horizon")
     r = camera_height / np.tan(-lat[:, 1])                        # horizontal distance of the floor corner
@@ -65,7 +63,7 @@ def corners_from_label_cor(cor: np.ndarray, width: int, height: int, camera_heig
     out = np.zeros((len(c), 2, 3))
     out[:, :, :2] = xy[:, None]
     out[:, 0, 2], out[:, 1, 2] = h_c, -camera_height
-    return out @ R_WORLD_FROM_CAM                                  # layout -> camera frame
+    return out @ np.asarray(UPRIGHT_TO_WORLD)                      # layout -> camera frame (R^T on the right)
 
 
 class HorizonNetFolderDataset(torch.utils.data.Dataset):
@@ -97,7 +95,6 @@ class HorizonNetFolderDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict:
         import cv2
-        from ..cameras import Equirectangular
         p, lab = self.items[i]
         bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if bgr is None:

@@ -1,11 +1,13 @@
 """Layout targets through the camera model, and layout augmentations valid for the camera.
 
-* :func:`boundary_targets`: per-column ceiling/floor boundary rows ``(2, W)`` of a room given by its
-  3D corners (camera frame), computed *through the camera*: each column's rays (``camera.unproject``)
-  give its vertical half-plane, the half-plane meets the wall polygon at a horizontal range, and the
-  ceiling/floor point there is re-projected with ``camera.project``. For a non-central panorama the
-  result differs from the central one (HorizonNet's ``cor_2_1d`` assumes a central camera).
-* :func:`corner_heat`: HorizonNet's corner target ``0.96^d`` from the corner columns.
+* :func:`room_boundary_rows` / :func:`boundary_targets`: per-column ceiling/floor boundary rows
+  ``(2, W)`` of a room (top-view polygon and heights in the layout frame, or 3D corners in the camera
+  frame), computed *through the camera*: each column's rays (``camera.unproject``) give its vertical
+  half-plane, the half-plane meets the wall polygon at a horizontal range, and the ceiling/floor point
+  there is re-projected with ``camera.project``. For a non-central panorama the result differs from
+  the central one (HorizonNet's ``cor_2_1d`` assumes a central camera).
+* :func:`corner_probability` / :func:`corner_heat`: HorizonNet's corner target ``0.96^d`` from the
+  corner columns.
 * :class:`LayoutAugment` / :class:`LayoutAugmentedDataset`: horizontal roll and left-right flip (exact
   for equirectangular and non-central panoramas: the rig circle is symmetric) and, for central
   panoramas only, HorizonNet's pano stretch (which has no exact non-central counterpart: refused).
@@ -19,22 +21,44 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..postprocess.layout.rays import R_WORLD_FROM_CAM
+from ..cameras import resolve_camera
+from ..geometry.polygon import ray_polygon_hit
+from ..geometry.rotations import UPRIGHT_TO_WORLD, rotation_y
+from ..metrics.layout import corners_to_layout
 
 CORNER_BASE = 0.96
+#: camera frame -> layout frame (float64 numpy)
+_R = np.asarray(UPRIGHT_TO_WORLD, dtype=np.float64)
 
 
-def _camera(camera: Any):
-    if hasattr(camera, "unproject"):
-        return camera
-    from ..cameras import build
-    return build(camera)
+def room_boundary_rows(polygon: np.ndarray, h_ceiling: float, h_floor: float,
+                       camera: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Ceiling/floor boundary rows of a room through ``camera``, and the wall each column sees.
 
-
-def corners_to_layout(corners_cam: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """``(N, 2, 3)`` camera-frame ``[ceiling, floor]`` corners -> top-view polygon, ``h_c``, ``h_f``."""
-    c = np.asarray(corners_cam, float) @ R_WORLD_FROM_CAM.T
-    return c[:, 0, :2], float(c[:, 0, 2].mean()), float(c[:, 1, 2].mean())
+    Args:
+        polygon: ``(N, 2)`` top-view room polygon in the layout frame (metres, any orientation).
+        h_ceiling, h_floor: ceiling and floor heights in the layout frame (metres).
+        camera: the panorama's camera (any :func:`~omnidl.cameras.resolve_camera` spec).
+    Returns:
+        ``rows (2, W)`` float64 continuous pixel rows (NaN where the column's half-plane misses the
+        room or the camera does not see the point) and ``wall (W,)`` the index of the polygon edge
+        each column's half-plane meets first.
+    """
+    cam = resolve_camera(camera)
+    W, H = cam.width, cam.height
+    uv = torch.stack([torch.arange(W, dtype=torch.float64) + 0.5, torch.full((W,), H / 2.0, dtype=torch.float64)], -1)
+    rays = cam.unproject(uv)
+    o = rays.origin.numpy() @ _R.T
+    d = rays.direction.numpy() @ _R.T
+    b = d[:, :2] / np.maximum(np.linalg.norm(d[:, :2], axis=1, keepdims=True), 1e-12)
+    s, wall = ray_polygon_hit(np.asarray(polygon, float), o[:, :2], b)
+    ok = np.isfinite(s) & rays.valid.numpy()
+    rows = np.full((2, W), np.nan)
+    for k, h in enumerate((h_ceiling, h_floor)):
+        p = np.concatenate([o[:, :2] + np.where(ok, s, 1.0)[:, None] * b, np.full((W, 1), h)], 1)
+        uvp, vis = cam.project(torch.from_numpy(p @ _R))               # layout -> camera frame (R^T)
+        rows[k] = np.where(ok & vis.numpy(), uvp[:, 1].numpy(), np.nan)
+    return rows, wall
 
 
 def boundary_targets(corners_cam: np.ndarray, camera: Any) -> tuple[Tensor, Tensor]:
@@ -42,51 +66,34 @@ def boundary_targets(corners_cam: np.ndarray, camera: Any) -> tuple[Tensor, Tens
 
     ``corners_cam``: ``(N, 2, 3)`` ceiling/floor corners of the room polygon in the camera frame
     (metres, any orientation of the polygon). Columns whose half-plane misses the room are invalid
-    (row ``-1``).
+    (row ``-1``). See :func:`room_boundary_rows`.
     """
-    cam = _camera(camera)
     poly, h_c, h_f = corners_to_layout(corners_cam)
-    W, H = cam.width, cam.height
-    uv = torch.stack([torch.arange(W, dtype=torch.float64) + 0.5, torch.full((W,), H / 2.0, dtype=torch.float64)], -1)
-    rays = cam.unproject(uv)
-    o = rays.origin.numpy() @ R_WORLD_FROM_CAM.T
-    d = rays.direction.numpy() @ R_WORLD_FROM_CAM.T
-    b = d[:, :2] / np.maximum(np.linalg.norm(d[:, :2], axis=1, keepdims=True), 1e-12)
-    from ..postprocess.layout.simulate import _segments_hit
-    s, _ = _segments_hit(poly, o[:, :2], b)
-    ok = np.isfinite(s) & rays.valid.numpy()
-    rows = np.full((2, W), -1.0)
-    valid = np.zeros((2, W), bool)
-    for k, h in enumerate((h_c, h_f)):
-        p = np.concatenate([o[:, :2] + np.where(ok, s, 1.0)[:, None] * b, np.full((W, 1), h)], 1)
-        pc = torch.from_numpy(p @ R_WORLD_FROM_CAM)                 # layout -> camera frame (R^T)
-        uvp, vis = cam.project(pc)
-        good = ok & vis.numpy()
-        rows[k] = np.where(good, uvp[:, 1].numpy(), -1.0)
-        valid[k] = good
-    return torch.from_numpy(rows).float(), torch.from_numpy(valid)
+    rows, _ = room_boundary_rows(poly, h_c, h_f, camera)
+    valid = np.isfinite(rows)
+    return torch.from_numpy(np.where(valid, rows, -1.0)).float(), torch.from_numpy(valid)
 
 
-def corner_heat(columns: np.ndarray, width: int, base: float = CORNER_BASE) -> Tensor:
-    """``(1, W)`` HorizonNet corner target: ``base ** d``, ``d`` = circular column distance to the nearest corner."""
+def corner_probability(columns: np.ndarray, width: int, base: float = CORNER_BASE) -> np.ndarray:
+    """``(W,)`` float64 HorizonNet corner target ``base ** d``, ``d`` the circular column distance of column
+    centre ``j + 0.5`` to the nearest corner column (zeros without corners)."""
     u = np.arange(width) + 0.5
     cols = np.asarray(columns, float).reshape(-1)
     if len(cols) == 0:
-        return torch.zeros(1, width)
+        return np.zeros(width)
     dist = np.abs(u[:, None] - cols[None])
     dist = np.minimum(dist, width - dist).min(1)
-    return torch.from_numpy(base ** dist).float()[None]
+    return base ** dist
+
+
+def corner_heat(columns: np.ndarray, width: int, base: float = CORNER_BASE) -> Tensor:
+    """``(1, W)`` float32 :func:`corner_probability` (the sample key ``corner_heat``)."""
+    return torch.from_numpy(corner_probability(columns, width, base)).float()[None]
 
 
 # ------------------------------------------------------------------------------------------------
 # augmentations
 # ------------------------------------------------------------------------------------------------
-
-def _rot_y(delta: float) -> np.ndarray:
-    """Camera-frame rotation that adds ``delta`` to the longitude ``atan2(x, z)``."""
-    c, s = math.cos(delta), math.sin(delta)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
 
 def roll_sample(sample: dict, shift: int) -> dict:
     """Rotate the panorama about the vertical axis by ``shift`` columns (exact for both panoramas)."""
@@ -95,7 +102,7 @@ def roll_sample(sample: dict, shift: int) -> dict:
     for k, v in sample.items():
         if isinstance(v, Tensor) and v.dim() >= 2 and v.shape[-1] == W and k not in ("corners_cam", "lines_cam"):
             out[k] = torch.roll(v, shift, -1)
-    R = torch.as_tensor(_rot_y(2 * math.pi * shift / W), dtype=torch.float32)
+    R = rotation_y(torch.tensor(2 * math.pi * shift / W, dtype=torch.float64)).float()   # longitude += delta
     if "corners_cam" in sample:
         out["corners_cam"] = sample["corners_cam"] @ R.T.to(sample["corners_cam"].dtype)
     if "lines_cam" in sample:
@@ -132,7 +139,7 @@ def flip_sample(sample: dict) -> dict:
 def pano_stretch_sample(sample: dict, camera: Any, kx: float, kz: float) -> dict:
     """HorizonNet's pano stretch for a *central* panorama: the room scaled by ``kx`` along camera x and
     ``kz`` along z; the image is resampled and the boundary targets are recomputed through the camera."""
-    cam = _camera(camera)
+    cam = resolve_camera(camera)
     if not getattr(cam, "central", True):
         raise ValueError("pano stretch has no exact counterpart for a non-central panorama (the rig circle would "
                          "have to be stretched too); use roll/flip only")
@@ -179,7 +186,7 @@ class LayoutAugment:
 
     def __init__(self, camera: Any = None, roll: bool = True, flip: bool = True, stretch: float | None = None,
                  seed: int = 0) -> None:
-        self.camera = _camera(camera) if camera is not None else None
+        self.camera = resolve_camera(camera, default=None)
         if stretch is not None and self.camera is not None and not self.camera.central:
             raise ValueError("LayoutAugment: stretch is only valid for central panoramas (got a non-central camera)")
         self.roll, self.flip, self.stretch, self.seed = roll, flip, stretch, seed

@@ -8,7 +8,7 @@ Frame adapter (explicit). The dataset's azimuth *decreases* with the column: col
 ``theta = pi - 2 pi (x + 0.5) / W`` in its right-handed z-up frame (x = camera heading, y = left),
 whereas omnidl's longitude ``lon = 2 pi (x + 0.5) / W - pi = -theta`` increases. Points map to omnidl's
 layout frame as ``(x_l, y_l, z_l) = (-y_d, x_d, z_d)`` (:func:`dataset_to_layout`), and to the OpenCV
-camera frame through ``R_WORLD_FROM_CAM^T``. The image columns need no flip.
+camera frame through ``UPRIGHT_TO_WORLD^T`` (:mod:`omnidl.geometry.rotations`). The image columns need no flip.
 
 Sample keys (as the data engine, ``docs/synth.md``): ``image``, ``depth`` (range along the ray from the
 column's optical centre, as decoded; 0 = invalid), ``boundary (2,W)`` rows + ``boundary_valid`` (from
@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..postprocess.layout.rays import R_WORLD_FROM_CAM
+from ..cameras import Equirectangular
+from ..geometry.rotations import UPRIGHT_TO_WORLD
 from .horizonnet_format import read_label_cor
 from .layout_targets import boundary_targets, corner_heat
 
@@ -113,7 +114,7 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
         n = len(gt) // 2
         lay = dataset_to_layout(gt - pose)
         corners = np.stack([lay[:n], lay[n:]], 1)                      # (N, 2, 3) layout frame
-        corners_cam = corners @ R_WORLD_FROM_CAM                        # -> OpenCV camera frame
+        corners_cam = corners @ np.asarray(UPRIGHT_TO_WORLD)             # -> OpenCV camera frame (R^T)
         out["corners_cam"] = torch.from_numpy(corners_cam).float()
         out["num_walls"] = torch.tensor(n)
         cor = read_label_cor(self._file("DataPython", "label_cor", f"{name}.txt"))
@@ -136,15 +137,16 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
             raise ValueError(f"{name}: label_ang must be (3, K) (azimuth, ceiling, floor elevations), got {ang.shape}")
         lon = -ang[0]                                                    # the dataset's azimuth runs opposite
         order = np.argsort(lon)
-        u = np.arange(W) + 0.5
-        lon_u = 2 * math.pi * u / W - math.pi
+        pano = Equirectangular(width=W, height=H)                        # the dataset's pixel <-> angle map
+        u = torch.arange(W, dtype=torch.float64) + 0.5
+        lon_u = pano.uv_to_lonlat(torch.stack([u, torch.zeros_like(u)], -1))[0].numpy()
         rows, valid = [], []
         for k in (1, 2):
             el = ang[k][order]
             seen = el != 0                                               # 0 = boundary not seen
             e = np.interp(lon_u, lon[order], el, period=2 * math.pi)
             ok = np.interp(lon_u, lon[order], seen.astype(float), period=2 * math.pi) > 0.999
-            rows.append((math.pi / 2 - e) / math.pi * H)
+            rows.append(pano.lonlat_to_uv(torch.from_numpy(lon_u), torch.from_numpy(e))[:, 1].numpy())
             valid.append(ok)
         rows, valid = np.stack(rows), np.stack(valid)
         return torch.from_numpy(np.where(valid, rows, -1.0)).float(), torch.from_numpy(valid)

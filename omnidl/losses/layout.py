@@ -2,7 +2,8 @@
 
 Predictions: ``outputs["boundary"] (B, 2, W)`` radians below the horizon, ``outputs["corner"] (B, 1, W)``
 logits. Targets (data-engine keys, ``docs/synth.md``): ``batch["boundary"] (B, 2, W)`` continuous pixel
-rows (``target_units="rows"``, converted with the image height: ``theta = (v / H - 0.5) pi``) or radians
+rows (``target_units="rows"``, converted with the image height by
+:func:`omnidl.geometry.boundary.rows_to_angles`) or radians
 (``target_units="radians"``), optional ``batch["boundary_valid"] (B, 2, W)``, and
 ``batch["corner_heat"]`` (or ``batch["corner"]``) ``(B, 1, W)`` in ``[0, 1]`` (``0.96^d``).
 
@@ -10,17 +11,12 @@ rows (``target_units="rows"``, converted with the image height: ``theta = (v / H
 """
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-
-def boundary_rows_to_angles(rows: Tensor, height: int) -> Tensor:
-    """Continuous pixel rows -> HorizonNet angles ``(v / H - 0.5) * pi``."""
-    return (rows / height - 0.5) * math.pi
+from ..geometry.boundary import rows_to_angles
 
 
 class LayoutLoss(nn.Module):
@@ -46,7 +42,7 @@ class LayoutLoss(nn.Module):
             raise ValueError(f"batch['boundary'] has shape {tuple(tgt.shape)}, predictions {tuple(pred_b.shape)}")
         if self.target_units == "rows":
             H = int(batch["image"].shape[-2]) if "image" in batch else pred_b.shape[-1] // 2
-            tgt = boundary_rows_to_angles(tgt, H)
+            tgt = rows_to_angles(tgt, H)
         valid = batch.get("boundary_valid")
         valid = torch.ones_like(tgt, dtype=torch.bool) if valid is None else valid.to(pred_b.device).bool()
         valid = valid & torch.isfinite(tgt)

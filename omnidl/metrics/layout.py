@@ -1,12 +1,14 @@
 """Layout metrics (thesis §5.6): corner error in metres (CE), normalised corner error (CEN), 3D IoU,
 up-to-scale 3D IoU, 2D IoU, and the edge/corner map precision/recall/accuracy/IoU of Table 5.1.
 
+The metrics only *read* layouts: predicted ones come from ``outputs["layout"]`` (written there by a
+layout post-processing hook, e.g. ``layout_atlanta``), ground-truth ones from the batch
+(:func:`gt_layout_from_batch`). Nothing here runs the geometric pipeline.
+
 Conventions: layouts are top-view polygons ``(N, 2)`` extruded between ``h_floor < h_ceiling``
-(metres, camera circle at ``z = 0``, see :mod:`omnidl.postprocess.layout`). Polygon areas and
-intersections are computed exactly for simple (possibly non-convex) polygons of any orientation:
-``area(P ∩ Q) = sum_e sum_f s_e s_f area(T_e ∩ T_f)`` where ``T_e`` is the triangle (origin, edge
-``e``) with orientation sign ``s_e``, and each convex ``T_e ∩ T_f`` is clipped with
-Sutherland–Hodgman.
+(metres, layout frame ``X_w = UPRIGHT_TO_WORLD @ X_cam``, camera at ``z = 0``). Polygon areas and
+intersections are exact for simple (possibly non-convex) polygons of any orientation
+(:mod:`omnidl.geometry.polygon`).
 """
 from __future__ import annotations
 
@@ -16,80 +18,64 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..geometry.boundary import angles_to_rows, rows_to_angles
+from ..geometry.polygon import polygon_area, polygon_intersection_area
+from ..geometry.rotations import UPRIGHT_TO_WORLD
+
+#: camera frame -> layout frame (float64 numpy)
+_R = np.asarray(UPRIGHT_TO_WORLD, dtype=np.float64)
+
 
 # ---------------------------------------------------------------------------------------------
-# polygons
+# layouts: ground truth from the batch, predictions from outputs["layout"]
 # ---------------------------------------------------------------------------------------------
 
-def polygon_area(poly: np.ndarray) -> float:
-    """Signed area of a ``(N, 2)`` polygon (positive counter-clockwise)."""
-    p = np.asarray(poly, float)
-    if len(p) < 3:
-        return 0.0
-    return 0.5 * float(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1]))
+def corners_to_layout(corners_cam: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """``(N, 2, 3)`` camera-frame ``[ceiling, floor]`` corners -> top-view polygon ``(N, 2)``, ``h_c``, ``h_f``
+    (layout frame; heights are the means over the corners)."""
+    c = np.asarray(corners_cam, float) @ _R.T
+    return c[:, 0, :2], float(c[:, 0, 2].mean()), float(c[:, 1, 2].mean())
 
 
-def _clip_convex(subject: list, clip: np.ndarray) -> list:
-    """Sutherland–Hodgman: ``subject`` polygon clipped by convex CCW ``clip`` (3 vertices here)."""
-    out = subject
-    n = len(clip)
-    for i in range(n):
-        if not out:
-            break
-        a, b = clip[i], clip[(i + 1) % n]
-        ex, ey = b[0] - a[0], b[1] - a[1]
-        inp = out
-        out = []
-        m = len(inp)
-        for j in range(m):
-            p, q = inp[j], inp[(j + 1) % m]
-            sp = ex * (p[1] - a[1]) - ey * (p[0] - a[0])
-            sq = ex * (q[1] - a[1]) - ey * (q[0] - a[0])
-            if sp >= 0:
-                out.append(p)
-            if (sp >= 0) != (sq >= 0):
-                t = sp / (sp - sq)
-                out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
-    return out
+def gt_layout_from_batch(batch: dict, b: int) -> tuple[np.ndarray, tuple[float, float]] | None:
+    """Ground-truth ``(polygon (N, 2), (h_floor, h_ceiling))`` of image ``b`` in the layout frame, if any.
+
+    Reads the data engine's ``corners_cam (N_MAX, 2, 3)`` + ``num_walls``, or a ``corners_3d (2N, 3)``
+    already in the layout frame (N ceiling corners then N floor corners); ``None`` without either.
+    """
+    if "corners_cam" in batch:
+        c = batch["corners_cam"][b].detach().cpu().double().numpy()
+        n = int(batch["num_walls"][b]) if "num_walls" in batch else len(c)
+        poly, h_c, h_f = corners_to_layout(c[:n])
+        return poly, (h_f, h_c)
+    if "corners_3d" in batch:
+        g = batch["corners_3d"][b]
+        g = g.detach().cpu().double().numpy() if isinstance(g, torch.Tensor) else np.asarray(g, float)
+        g = g[np.all(np.isfinite(g), -1)]
+        n = len(g) // 2
+        return g[:n, :2], (float(g[n:, 2].mean()), float(g[:n, 2].mean()))
+    return None
 
 
-def _area_list(pts: list) -> float:
-    if len(pts) < 3:
-        return 0.0
-    s = 0.0
-    for i in range(len(pts)):
-        x1, y1 = pts[i]
-        x2, y2 = pts[(i + 1) % len(pts)]
-        s += x1 * y2 - x2 * y1
-    return 0.5 * s
+def layout_fields(layout: Any) -> tuple[bool, np.ndarray, tuple[float, float]]:
+    """``(ok, corners (N, 2), (h_floor, h_ceiling))`` of a predicted layout.
+
+    Accepts the post-processing ``Layout`` object (attributes ``ok``, ``corners``, ``h_floor``,
+    ``h_ceiling``) or its ``to_dict()`` form (keys ``ok``, ``corners_2d``, ``h_floor``, ``h_ceiling``),
+    which is what the layout hooks put in ``outputs["layout"]``.
+    """
+    if isinstance(layout, dict):
+        if not layout.get("ok", False):
+            return False, np.zeros((0, 2)), (math.nan, math.nan)
+        return True, np.asarray(layout["corners_2d"], float), (float(layout["h_floor"]), float(layout["h_ceiling"]))
+    if not layout.ok:
+        return False, np.zeros((0, 2)), (math.nan, math.nan)
+    return True, np.asarray(layout.corners, float), (float(layout.h_floor), float(layout.h_ceiling))
 
 
-def polygon_intersection_area(p: np.ndarray, q: np.ndarray) -> float:
-    """Exact area of the intersection of two simple polygons ``(N, 2)``, ``(M, 2)`` (any orientation)."""
-    p, q = np.asarray(p, float), np.asarray(q, float)
-    if len(p) < 3 or len(q) < 3:
-        return 0.0
-    # origin at a common point keeps the fan triangles small
-    c = p.mean(0)
-    p, q = p - c, q - c
-    total = 0.0
-    tp = [(np.zeros(2), p[i], p[(i + 1) % len(p)]) for i in range(len(p))]
-    tq = [(np.zeros(2), q[i], q[(i + 1) % len(q)]) for i in range(len(q))]
-    def orient(t):
-        a = _area_list([tuple(v) for v in t])
-        return (1.0 if a > 0 else -1.0), (np.array(t) if a > 0 else np.array(t[::-1]))
-    oq = [orient(t) for t in tq if abs(_area_list([tuple(v) for v in t])) > 0]
-    for t in tp:
-        a = _area_list([tuple(v) for v in t])
-        if a == 0:
-            continue
-        sp, T = (1.0, t) if a > 0 else (-1.0, t[::-1])
-        subj = [tuple(v) for v in T]
-        for sq, U in oq:
-            total += sp * sq * _area_list(_clip_convex(subj, U))
-    sign = np.sign(polygon_area(p)) * np.sign(polygon_area(q))
-    return float(abs(total) if sign != 0 else 0.0)
-
+# ---------------------------------------------------------------------------------------------
+# IoU of extruded polygons
+# ---------------------------------------------------------------------------------------------
 
 def iou_2d(p: np.ndarray, q: np.ndarray) -> float:
     """Top-view (floor plan) IoU of two polygons."""
@@ -164,17 +150,12 @@ def layout_scores(pred_corners: np.ndarray, pred_h: tuple[float, float], gt_corn
 # edge / corner maps (Table 5.1)
 # ---------------------------------------------------------------------------------------------
 
-def boundary_rows(boundary: torch.Tensor, height: int) -> torch.Tensor:
-    """HorizonNet boundary angles ``(..., W)`` (radians below the horizon) -> continuous rows."""
-    return (boundary / math.pi + 0.5) * height
-
-
 def edge_map(boundary: torch.Tensor, corner_cols: list[torch.Tensor] | None, height: int,
              thickness: float = 1.0) -> torch.Tensor:
     """Binary edge map ``(B, H, W)``: ceiling/floor boundary pixels (``|row - v| <= thickness``) and the
     vertical wall-wall edges between them at the given corner columns (integer indices per image)."""
     B, _, W = boundary.shape
-    rows = boundary_rows(boundary, height)                                    # (B, 2, W)
+    rows = angles_to_rows(boundary, height)                                    # (B, 2, W)
     r = torch.arange(height, dtype=rows.dtype, device=rows.device).view(1, height, 1) + 0.5
     m = ((r - rows[:, 0:1]).abs() <= thickness) | ((r - rows[:, 1:2]).abs() <= thickness)
     if corner_cols is not None:
@@ -188,7 +169,7 @@ def edge_map(boundary: torch.Tensor, corner_cols: list[torch.Tensor] | None, hei
 def corner_map(boundary: torch.Tensor, corner_cols: list[torch.Tensor], height: int, radius: float = 3.0) -> torch.Tensor:
     """Binary corner map ``(B, H, W)``: discs of ``radius`` px at the ceiling and floor ends of each corner column."""
     B, _, W = boundary.shape
-    rows = boundary_rows(boundary, height)
+    rows = angles_to_rows(boundary, height)
     vv = torch.arange(height, dtype=rows.dtype, device=rows.device).view(height, 1) + 0.5
     uu = torch.arange(W, dtype=rows.dtype, device=rows.device).view(1, W) + 0.5
     out = torch.zeros(B, height, W, dtype=torch.bool, device=rows.device)
@@ -213,9 +194,33 @@ def binary_scores(pred: torch.Tensor, gt: torch.Tensor) -> dict[str, float]:
             "accuracy": (tp + tn) / max(tp + tn + fp + fn, 1), "iou": tp / (tp + fp + fn) if tp + fp + fn else 0.0}
 
 
+def find_peaks(prob: np.ndarray, threshold: float = 0.5, radius: int | None = None) -> np.ndarray:
+    """Sub-pixel columns (continuous ``u``) of local maxima of a circular ``(W,)`` probability.
+
+    A column is a peak when it is the maximum within ``radius`` columns (circularly; default
+    ``W/200``, at least 2) and above ``threshold``. The position is refined by a parabola through the peak and
+    its neighbours. Returns sorted ``u`` values in ``[0, W)``.
+    """
+    p = np.nan_to_num(np.asarray(prob, float).reshape(-1), nan=0.0)
+    W = p.shape[0]
+    r = max(2, int(round(W / 200))) if radius is None else max(1, int(radius))
+    idx = np.arange(W)
+    win = np.stack([np.roll(p, k) for k in range(-r, r + 1)], 0)
+    is_max = (p >= win.max(0)) & (p > threshold)
+    # plateaus: keep the first column of equal maxima
+    is_max &= ~((np.roll(p, 1) == p) & np.roll(is_max, 1))
+    peaks = idx[is_max]
+    if len(peaks) == 0:
+        return np.zeros(0)
+    l, c, rr = p[(peaks - 1) % W], p[peaks], p[(peaks + 1) % W]
+    den = l - 2 * c + rr
+    off = np.where(np.abs(den) > 1e-12, 0.5 * (l - rr) / np.where(np.abs(den) > 1e-12, den, 1.0), 0.0)
+    off = np.clip(off, -0.5, 0.5)
+    return np.sort(np.mod(peaks + 0.5 + off, W))
+
+
 def corner_columns_from_prob(corner_prob: torch.Tensor, threshold: float = 0.5) -> list[torch.Tensor]:
-    """Integer peak columns per image from ``(B, W)`` probabilities (see :func:`...find_peaks`)."""
-    from ..postprocess.layout.corners import find_peaks
+    """Integer peak columns per image from ``(B, W)`` probabilities (see :func:`find_peaks`)."""
     return [torch.as_tensor(np.floor(find_peaks(p.detach().cpu().double().numpy(), threshold)), dtype=torch.long)
             for p in corner_prob]
 
@@ -231,25 +236,17 @@ class LayoutMetrics:
       logits against ``batch["boundary"]`` (pixel rows, or radians with ``target_units="radians"``;
       ``boundary_valid`` masks) and ``batch["corner_heat"]``/``batch["corner"]`` targets (Table 5.1:
       P/R/Acc/IoU of the edge and corner maps, plus the mean absolute boundary error in pixels).
-    * Layout metrics (when ``solver`` is set and the batch has ground-truth corners: the data engine's
-      ``corners_cam``/``num_walls`` or ``corners_3d``): the pipeline runs on the predictions
-      (``outputs["layout"]`` from a hook is used if present; ``camera_height`` selects the central
-      pipeline) and CE, CEN, 3D IoU, up-to-scale 3D IoU and 2D IoU are averaged over the images where
-      a layout was recovered; ``layout_fail_rate`` counts the others. The rig radius comes from ``rc``,
-      ``camera`` or the batch ``meta`` (``rig_radius``).
+    * Layout metrics (when ``outputs["layout"]`` holds the layouts of a layout hook, e.g.
+      ``postprocess: [layout_atlanta]``, and the batch has ground-truth corners: the data engine's
+      ``corners_cam``/``num_walls`` or ``corners_3d``): CE, CEN, 3D IoU, up-to-scale 3D IoU and 2D IoU
+      averaged over the images where a layout was recovered; ``layout_fail_rate`` counts the others.
     """
 
-    def __init__(self, solver: str | None = "atlanta", corner_threshold: float = 0.5, edge_thickness: float = 1.0,
-                 corner_radius: float = 3.0, rc: float | None = None, camera: Any = None,
-                 camera_height: float | None = None, central: bool = False, target_units: str = "rows"):
-        self.solver = solver
+    def __init__(self, corner_threshold: float = 0.5, edge_thickness: float = 1.0, corner_radius: float = 3.0,
+                 target_units: str = "rows"):
         self.corner_threshold = corner_threshold
         self.edge_thickness = edge_thickness
         self.corner_radius = corner_radius
-        self.rc = rc
-        self.camera = camera
-        self.camera_height = camera_height
-        self.central = bool(central) or camera_height is not None
         if target_units not in ("rows", "radians"):
             raise ValueError(f"target_units must be 'rows' or 'radians', got {target_units!r}")
         self.target_units = target_units
@@ -274,7 +271,7 @@ class LayoutMetrics:
         if "boundary" in batch:
             gt_b = batch["boundary"].to(bon.device).float()
             if self.target_units == "rows":
-                gt_b = (gt_b / H - 0.5) * math.pi
+                gt_b = rows_to_angles(gt_b, H)
             valid = batch.get("boundary_valid")
             valid = torch.ones_like(gt_b, dtype=torch.bool) if valid is None else valid.to(bon.device).bool()
             if valid.any():
@@ -289,27 +286,18 @@ class LayoutMetrics:
                 self._add(f"edge_{k}", v)
             for k, v in cs.items():
                 self._add(f"corner_{k}", v)
-        if self.solver is None or not ("corners_3d" in batch or "corners_cam" in batch):
-            return
-        from ..postprocess.layout.hooks import gt_layout_from_batch, layouts_from_outputs
         layouts = outputs.get("layout")
         if layouts is None:
-            layouts = layouts_from_outputs(outputs, batch, world=self.solver, rc=self.rc, camera=self.camera,
-                                           camera_height=self.camera_height, central=self.central)
+            return
         for b in range(B):
             gt = gt_layout_from_batch(batch, b)
             if gt is None or len(gt[0]) < 3:
                 continue
-            gt_poly, gt_h = gt
-            lay = layouts[b]
-            if isinstance(lay, dict):
-                from ..postprocess.layout.layout import Layout
-                lay = Layout.from_dict(lay)
-            self._add("layout_fail_rate", 0.0 if lay.ok else 1.0)
-            if not lay.ok:
-                continue
-            for k, v in layout_scores(lay.corners, (lay.h_floor, lay.h_ceiling), gt_poly, gt_h).items():
-                self._add(k, v)
+            ok, corners, h = layout_fields(layouts[b])
+            self._add("layout_fail_rate", 0.0 if ok else 1.0)
+            if ok:
+                for k, v in layout_scores(corners, h, gt[0], gt[1]).items():
+                    self._add(k, v)
 
     def compute(self) -> dict[str, float]:
         return {k: self._sums[k] / self._counts[k] for k in sorted(self._sums)}

@@ -4,9 +4,10 @@
 
 * ``boundary``: ceiling and floor boundary of every column as the angle below the horizon in
   radians (HorizonNet's convention ``theta = (v / H - 0.5) * pi`` for the continuous pixel row ``v``;
-  negative = ceiling side). The rays of a boundary pixel come from the camera model, so the same
-  output serves an equirectangular (``camera="equirect"``) or a non-central panorama
-  (``camera="noncentral_pano"``, thesis §5.3.1: every column is locally central).
+  negative = ceiling side; :func:`omnidl.geometry.boundary.rows_to_angles` / ``angles_to_rows``).
+  The rays of a boundary pixel come from the camera model, so the same output serves an
+  equirectangular (``camera="equirect"``) or a non-central panorama (``camera="noncentral_pano"``,
+  thesis §5.3.1: every column is locally central).
 * ``corner``: logits of a wall-wall corner at each column.
 
 Architecture (as the reference, ``../shared/reference/layout.md`` §1.1): ResNet levels 1-4 ->

@@ -1,4 +1,4 @@
-"""Layout targets through the camera model (vs the independent analytic caster) and augmentations."""
+"""Layout targets through the camera model (vs an independent closed-form caster) and augmentations."""
 import math
 
 import numpy as np
@@ -6,12 +6,23 @@ import pytest
 import torch
 
 from omnidl.cameras import build
-from omnidl.data.layout_targets import (LayoutAugment, boundary_targets, corner_heat, flip_sample,
+from omnidl.data.layout_targets import (LayoutAugment, boundary_targets, corner_heat, corner_probability, flip_sample,
                                         pano_stretch_sample, roll_sample)
-from omnidl.postprocess.layout.rays import R_WORLD_FROM_CAM
-from omnidl.postprocess.layout.simulate import Room, corner_columns, corner_probability, render_boundaries
+from omnidl.geometry.polygon import ray_polygon_hit
+from omnidl.geometry.rotations import UPRIGHT_TO_WORLD
+from omnidl.apps.layout.simulate import Room, corner_columns
+
+R_UP = np.asarray(UPRIGHT_TO_WORLD)          # camera -> layout frame
 
 ROOM = Room(np.array([[3.0, -2.5], [3.5, 2.0], [-0.5, 3.5], [-2.0, 2.0], [-2.0, -2.5]]), 1.25, -1.45)
+
+
+def render_boundaries(room, width, rc):
+    """Closed-form boundary latitudes of the circular panorama of radius ``rc`` (independent of the cameras)."""
+    lon = 2 * math.pi * (np.arange(width) + 0.5) / width - math.pi
+    b = np.stack([np.sin(lon), np.cos(lon)], -1)
+    s, k = ray_polygon_hit(np.asarray(room.polygon, float), rc * b, b)
+    return np.arctan2(room.h_ceiling, s), np.arctan2(room.h_floor, s), k
 
 
 def _corners_cam(room):
@@ -19,7 +30,7 @@ def _corners_cam(room):
     c = np.zeros((n, 2, 3))
     c[:, :, :2] = room.polygon[:, None]
     c[:, 0, 2], c[:, 1, 2] = room.h_ceiling, room.h_floor
-    return c @ R_WORLD_FROM_CAM               # layout -> camera frame (R^T)
+    return c @ R_UP               # layout -> camera frame (R^T)
 
 
 @pytest.mark.parametrize("cam_cfg", [{"type": "noncentral_pano", "rc": 1.0}, {"type": "noncentral_pano", "rc": 0.5},
@@ -40,15 +51,16 @@ def test_noncentral_boundaries_differ_from_central():
 
 
 def test_corner_heat_is_horizonnet_target():
-    h = corner_heat(corner_columns(ROOM, 64), 64)
-    assert torch.allclose(h[0].double(), torch.from_numpy(corner_probability(corner_columns(ROOM, 64), 64)))
+    cam = build({"type": "equirect", "width": 64, "height": 32})
+    h = corner_heat(corner_columns(ROOM, cam), 64)
+    assert torch.allclose(h[0].double(), torch.from_numpy(corner_probability(corner_columns(ROOM, cam), 64)))
 
 
 def _sample(cam):
     rows, valid = boundary_targets(_corners_cam(ROOM), cam)
     img = torch.rand(3, cam.height, cam.width)
     return {"image": img, "boundary": rows, "boundary_valid": valid,
-            "corner_heat": corner_heat(corner_columns(ROOM, cam.width), cam.width),
+            "corner_heat": corner_heat(corner_columns(ROOM, cam), cam.width),
             "corners_cam": torch.from_numpy(_corners_cam(ROOM)).float(), "num_walls": torch.tensor(5)}
 
 
@@ -67,7 +79,7 @@ def test_pano_stretch_central_only():
     eq = build({"type": "equirect", "width": 128, "height": 64})
     s = _sample(eq)
     t = pano_stretch_sample(s, eq, 1.5, 0.8)
-    c = t["corners_cam"].double().numpy() @ R_WORLD_FROM_CAM.T
+    c = t["corners_cam"].double().numpy() @ R_UP.T
     assert np.allclose(c[:, 0, 0], ROOM.polygon[:, 0] * 1.5, atol=1e-5)
     assert t["image"].shape == s["image"].shape and t["boundary_valid"].all()
     nc = build({"type": "noncentral_pano", "width": 128, "height": 64, "rc": 1.0})

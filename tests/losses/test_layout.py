@@ -5,7 +5,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from omnidl.losses.layout import LayoutLoss, boundary_rows_to_angles
+from omnidl.geometry.boundary import rows_to_angles
+from omnidl.losses.layout import LayoutLoss
 
 
 def test_values_and_units():
@@ -40,4 +41,4 @@ def test_invalid_columns_are_ignored_and_errors_are_clear():
         LayoutLoss()({"boundary": pred}, batch)
     with pytest.raises(ValueError):
         LayoutLoss()({"boundary": torch.zeros(1, 2, 8), "corner": torch.zeros(1, 1, 8)}, batch)
-    assert boundary_rows_to_angles(torch.tensor(0.0), 10) == pytest.approx(-math.pi / 2)
+    assert rows_to_angles(torch.tensor(0.0), 10) == pytest.approx(-math.pi / 2)

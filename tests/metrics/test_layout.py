@@ -74,18 +74,21 @@ def test_edge_and_corner_maps_and_scores():
     assert s2["recall"] == 0 and s2["iou"] == 0
 
 
-def test_layout_metrics_object_runs_pipeline_on_outputs():
-    from omnidl.postprocess.layout.simulate import Room, simulate_columns
+def test_layout_metrics_object_reads_hook_layouts_from_outputs():
+    from omnidl.postprocess import get_hook
+    from omnidl.apps.layout.simulate import Room, ring_camera, simulate_columns
     room = Room(np.array([[3.0, -2.5], [3.0, 3.5], [-2.0, 3.5], [-2.0, -2.5]]), 1.25, -1.45)
-    rays, prob = simulate_columns(room, 256, 128, 1.0)
+    rays, prob = simulate_columns(room, ring_camera(1.0, 256))
     lat_c, lat_f = rays.elevations()
     bon = torch.from_numpy(np.stack([-lat_c, -lat_f]))[None].float()
     logit = torch.logit(torch.from_numpy(prob).clamp(1e-4, 1 - 1e-4))[None, None].float()
     corners3d = torch.from_numpy(room.corners_3d)[None]
-    m = LayoutMetrics(solver="manhattan", rc=1.0, target_units="radians")
+    m = LayoutMetrics(target_units="radians")
     batch = {"image": torch.zeros(1, 3, 128, 256), "boundary": bon, "corner": torch.from_numpy(prob)[None, None].float(),
              "corners_3d": corners3d}
-    m.update({"boundary": bon, "corner": logit}, batch)
+    outputs = {"boundary": bon, "corner": logit}
+    outputs["layout"] = get_hook("layout_manhattan")(outputs, batch, camera=ring_camera(1.0, 256))["layout"]
+    m.update(outputs, batch)
     r = m.compute()
     assert r["ce"] < 0.05 and r["iou_3d"] > 95 and r["layout_fail_rate"] == 0
     assert r["edge_iou"] == pytest.approx(1.0) and r["boundary_px"] == pytest.approx(0.0, abs=1e-3)

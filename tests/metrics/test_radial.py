@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from omnidl.metrics.radial import RadialMetrics, plot_radial, radial_bin_edges, rows_to_csv
+from omnidl.metrics.radial import RadialMetrics, plot_radial, radial_bin_edges
+from omnidl.utils.io import rows_to_csv
 from omnidl.metrics.segmentation import SegmentationMetrics
 
 

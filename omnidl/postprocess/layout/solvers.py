@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...geometry.polygon import ray_line_range
+
 
 @dataclass
 class WallFit:
@@ -180,12 +182,7 @@ def predicted_elevation(theta, d, h, origin2: np.ndarray, b: np.ndarray) -> tupl
     and ``b (..., 2)`` (unit horizontal direction of the column). Returns ``(lat, s)``; ``s <= 0``
     (the column does not face the wall) gives ``lat = NaN``.
     """
-    nx, ny = -np.sin(theta), np.cos(theta)
-    nb = nx * b[..., 0] + ny * b[..., 1]
-    no = nx * origin2[..., 0] + ny * origin2[..., 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (d - no) / nb
-    s = np.where((nb > 1e-9) & (s > 0), s, np.nan)
+    s = ray_line_range(theta, d, origin2, b, eps=1e-9, facing=True)
     return np.arctan2(h, s), s
 
 
@@ -253,6 +250,31 @@ def solve_manhattan(A: np.ndarray, label: np.ndarray):
         return 0.0, np.zeros(n_walls), np.nan, np.nan, False
     _, theta0, d, h_c, h_f = best
     return theta0, d, h_c, h_f, True
+
+
+def solve_manhattan_central(A: np.ndarray, camera_height: float):
+    """Manhattan layout solver without moments (central panorama) on rows from :func:`manhattan_rows`.
+
+    Unknown ``(v, w, d_1..d_N)`` (the moment columns of ``A`` vanish); the smallest singular vector
+    gives the layout up to scale, ``u ∝ v - w``, and the floor is put at ``h_f = -camera_height``.
+    Returns ``(theta0, d (N,), h_c, h_f, ok)`` as :func:`solve_manhattan`.
+    """
+    B = A[:, 2:]
+    used = np.sqrt((B * B).sum(0)) > 0
+    _, _, Vh = np.linalg.svd(B[:, used])
+    X = np.zeros(B.shape[1])
+    X[used] = Vh[-1]
+    v, w, d = X[0:2], X[2:4], X[4:]
+    u = v - w
+    nu = np.linalg.norm(u)
+    if nu < 1e-12:
+        return 0.0, d, math.nan, math.nan, False
+    u = u / nu
+    h_c, h_f = float(u @ v), float(u @ w)
+    if not h_f < 0:
+        return 0.0, d, math.nan, math.nan, False
+    s = -camera_height / h_f
+    return math.atan2(u[1], u[0]), d * s, h_c * s, h_f * s, h_c * s > 0
 
 
 def atlanta_rows(dir_c, mom_c, dir_f, mom_f, theta: np.ndarray, wall: np.ndarray, n_walls: int):

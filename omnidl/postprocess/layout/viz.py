@@ -1,36 +1,26 @@
 """Layout pictures: wireframe overlay on the panorama (through the camera model) and a top view."""
 from __future__ import annotations
 
-import math
+from typing import Any
 
 import numpy as np
 
+from ...cameras import Camera, resolve_camera
+from ...geometry.boundary import angles_to_rows
 from .layout import Layout
-from .rays import R_WORLD_FROM_CAM
+from .rays import camera_rays, project_layout_points
 
 
-def project_points(points: np.ndarray, width: int, height: int, rc: float = 0.0, camera=None) -> np.ndarray:
-    """Pixels ``(..., 2)`` of layout-frame points ``(..., 3)``.
-
-    With ``camera`` its ``project`` is used (camera frame = ``R^T`` layout frame); otherwise the
-    circular panorama of radius ``rc`` in closed form: ``lon = atan2(x, y)``,
-    ``lat = atan2(z, rho - rc)``.
-    """
-    p = np.asarray(points, float)
-    if camera is not None:
-        import torch
-        pc = torch.from_numpy(p @ R_WORLD_FROM_CAM)           # R^T applied on the right: p R = (R^T p^T)^T
-        uv, _ = camera.project(pc.double())
-        return uv.numpy()
-    lon = np.arctan2(p[..., 0], p[..., 1])
-    rho = np.hypot(p[..., 0], p[..., 1])
-    lat = np.arctan2(p[..., 2], rho - rc)
-    return np.stack([(lon + math.pi) / (2 * math.pi) * width, (math.pi / 2 - lat) / math.pi * height], -1)
+def project_points(points: np.ndarray, camera: Any) -> np.ndarray:
+    """Pixels ``(..., 2)`` of layout-frame points ``(..., 3)`` through ``camera.project``
+    (any :func:`~omnidl.cameras.resolve_camera` spec)."""
+    uv, _ = project_layout_points(resolve_camera(camera), points)
+    return uv
 
 
-def wireframe_polylines(layout: Layout, width: int, height: int, rc: float = 0.0, camera=None,
-                        samples_per_metre: int = 40) -> list[np.ndarray]:
+def wireframe_polylines(layout: Layout, camera: Camera, samples_per_metre: int = 40) -> list[np.ndarray]:
     """Pixel polylines ``(K, 2)`` of every ceiling/floor edge and vertical corner edge, split at the seam."""
+    width = camera.width
     lines = []
     n = layout.n_corners
     for h in (layout.h_ceiling, layout.h_floor):
@@ -39,11 +29,11 @@ def wireframe_polylines(layout: Layout, width: int, height: int, rc: float = 0.0
             k = max(2, int(np.linalg.norm(b - a) * samples_per_metre))
             t = np.linspace(0, 1, k)[:, None]
             P = np.concatenate([a + t * (b - a), np.full((k, 1), h)], 1)
-            lines.append(project_points(P, width, height, rc, camera))
+            lines.append(project_points(P, camera))
     for c in layout.corners:
         z = np.linspace(layout.h_floor, layout.h_ceiling, 32)
         P = np.concatenate([np.repeat(c[None], 32, 0), z[:, None]], 1)
-        lines.append(project_points(P, width, height, rc, camera))
+        lines.append(project_points(P, camera))
     out = []
     for uv in lines:
         jumps = np.flatnonzero(np.abs(np.diff(uv[:, 0])) > width / 2)
@@ -51,22 +41,29 @@ def wireframe_polylines(layout: Layout, width: int, height: int, rc: float = 0.0
     return out
 
 
-def draw_wireframe(image: np.ndarray, layout: Layout, rc: float = 0.0, camera=None,
+def draw_wireframe(image: np.ndarray, layout: Layout, camera: Any,
                    color: tuple[int, int, int] = (0, 255, 0), thickness: int = 2) -> np.ndarray:
-    """RGB ``uint8 (H, W, 3)`` panorama with the layout wireframe drawn on it (a copy)."""
+    """RGB ``uint8 (H, W, 3)`` panorama with the layout wireframe drawn on it (a copy).
+
+    ``camera``: the panorama's camera (any :func:`~omnidl.cameras.resolve_camera` spec), resized to the image.
+    """
     import cv2
     img = np.ascontiguousarray(image.copy())
     H, W = img.shape[:2]
     if not layout.ok:
         return img
-    for uv in wireframe_polylines(layout, W, H, rc, camera):
+    for uv in wireframe_polylines(layout, resolve_camera(camera, W, H)):
         pts = np.round(uv - 0.5).astype(np.int32).reshape(-1, 1, 2)
         cv2.polylines(img, [pts], False, color, thickness, lineType=cv2.LINE_AA)
     return img
 
 
-def plot_top_view(layouts: list[Layout] | Layout, labels: list[str] | None = None, ax=None, rc: float = 0.0):
-    """Matplotlib top view of one or more layouts (metres) with the camera circle; returns the axes."""
+def plot_top_view(layouts: list[Layout] | Layout, labels: list[str] | None = None, ax=None, camera: Any = None):
+    """Matplotlib top view of one or more layouts (metres); returns the axes.
+
+    With ``camera`` the optical centres of its columns are drawn too (the rig circle of a non-central
+    panorama, a dot for a central camera).
+    """
     import matplotlib
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
@@ -82,8 +79,11 @@ def plot_top_view(layouts: list[Layout] | Layout, labels: list[str] | None = Non
         occ = lay.corners[lay.occluded] if lay.occluded.any() else np.zeros((0, 2))
         if len(occ):
             ax.plot(occ[:, 0], occ[:, 1], "rx")
-    t = np.linspace(0, 2 * math.pi, 100)
-    ax.plot(max(rc, 0.05) * np.cos(t), max(rc, 0.05) * np.sin(t), "k-", lw=0.8)
+    if camera is not None:
+        cam = resolve_camera(camera)
+        u = np.linspace(0.0, cam.width, 101)
+        o, _, _ = camera_rays(cam, np.stack([u, np.full_like(u, cam.height / 2.0)], -1))
+        ax.plot(o[:, 0], o[:, 1], "k.-", lw=0.8, ms=2)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -108,7 +108,7 @@ class LayoutVisualizer:
             img = batch["image"][i].detach().float().cpu().clamp(0, 1).clone()
             _, H, W = img.shape
             cols = torch.arange(W)
-            pred = ((outputs["boundary"][i].detach().float().cpu() / math.pi + 0.5) * H).clamp(0, H - 1).long()
+            pred = angles_to_rows(outputs["boundary"][i].detach().float().cpu(), H).clamp(0, H - 1).long()
             if "boundary" in batch:
                 gt = batch["boundary"][i].detach().float().cpu()
                 ok = batch["boundary_valid"][i].cpu().bool() if "boundary_valid" in batch else torch.ones_like(gt, dtype=torch.bool)

@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 
 from omnidl.postprocess.layout.adjust import AdjustProblem, adjust_layout, residuals_and_jacobian
-from omnidl.postprocess.layout.simulate import Room, render_boundaries, simulate_columns
+from omnidl.apps.layout.simulate import Room, render_boundaries, ring_camera, simulate_columns
 
 
 def _problem(room, rc=1.0, side=0.5, manh=10.0, W=256):
-    rays, _ = simulate_columns(room, W, W // 2, rc)
-    _, _, wall = render_boundaries(room, W, rc)
+    rays, _ = simulate_columns(room, ring_camera(rc, W))
+    _, wall = render_boundaries(room, ring_camera(rc, W))
     # vertices in column order: wall k sees polygon edge k, corner order along increasing column
     idx = np.flatnonzero(rays.valid)
     lat_c, lat_f = rays.elevations()

@@ -1,6 +1,7 @@
 """Hooks, ray construction through the camera model, exports and pictures."""
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,14 +10,24 @@ import torch
 from omnidl.cameras import build
 from omnidl.postprocess import get_hook, list_hooks
 from omnidl.postprocess.layout import Layout, column_rays_from_boundary
-from omnidl.postprocess.layout.simulate import Room, simulate_columns
+from omnidl.apps.layout.simulate import Room, ring_camera, simulate_columns
 from omnidl.postprocess.layout.viz import draw_wireframe, plot_top_view, project_points
 
 ROOM = Room(np.array([[3.0, -2.5], [3.0, 3.5], [-0.5, 3.5], [-2.0, 2.0], [-2.0, -2.5]]), 1.25, -1.45)
 
 
+def _closed_form_rays(boundary, rc, W):
+    """Circular panorama of radius ``rc`` in closed form (an oracle independent of the camera classes)."""
+    lon = 2 * math.pi * (np.arange(W) + 0.5) / W - math.pi
+    b = np.stack([np.sin(lon), np.cos(lon), np.zeros(W)], -1)
+
+    def d(lat):
+        return np.stack([np.cos(lat) * np.sin(lon), np.cos(lat) * np.cos(lon), np.sin(lat)], -1)
+    return SimpleNamespace(origin=rc * b, ceiling=d(-boundary[0]), floor=d(-boundary[1]))
+
+
 def _outputs(rc, W=256):
-    rays, prob = simulate_columns(ROOM, W, W // 2, rc)
+    rays, prob = simulate_columns(ROOM, ring_camera(rc, W))
     lat_c, lat_f = rays.elevations()
     bon = torch.from_numpy(np.stack([-lat_c, -lat_f]))[None].float()
     logit = torch.logit(torch.from_numpy(prob).clamp(1e-5, 1 - 1e-5))[None, None].float()
@@ -31,7 +42,7 @@ def test_hooks_registered():
 def test_rays_through_noncentral_camera_equal_closed_form():
     cam = build({"type": "noncentral_pano", "width": 256, "height": 128, "rc": 0.65})
     out = _outputs(0.65)
-    a = column_rays_from_boundary(out["boundary"][0].double(), rc=0.65, height=128)
+    a = _closed_form_rays(out["boundary"][0].double().numpy(), 0.65, 256)
     b = column_rays_from_boundary(out["boundary"][0].double(), camera=cam)
     assert np.allclose(a.ceiling, b.ceiling, atol=1e-6) and np.allclose(a.floor, b.floor, atol=1e-6)
     assert np.allclose(a.origin, b.origin, atol=1e-6) and b.rc == pytest.approx(0.65)
@@ -39,7 +50,7 @@ def test_rays_through_noncentral_camera_equal_closed_form():
     u = np.arange(256) + 0.5
     rows = (out["boundary"][0].numpy() / math.pi + 0.5) * 128
     pts = b.origin + 3.0 * b.ceiling                     # any point of the ray
-    uv = project_points(pts, 256, 128, rc=0.65)
+    uv = project_points(pts, cam)
     assert np.allclose(uv[:, 0], u, atol=1e-4) and np.allclose(uv[:, 1], rows[0], atol=1e-3)
 
 
@@ -50,7 +61,7 @@ def test_noncentral_hook_with_meta_and_gt_scores(name, ce_max, tmp_path):
     c3 = ROOM.corners_3d
     batch = {"image": torch.rand(1, 3, 128, 256), "meta": [{"rig_radius": 1.0, "name": "room0"}],
              "corners_3d": torch.from_numpy(c3)[None]}
-    res = get_hook(name)(out, batch, export_dir=str(tmp_path))
+    res = get_hook(name)(out, batch, camera=ring_camera(1.0, 256), export_dir=str(tmp_path))
     assert res["layout_ok"] == 1.0 and res["layout"][0]["ok"]
     assert res["layout_ce"] < ce_max and res["layout_iou_3d"] > (95 if ce_max < 0.1 else 70)
     js = json.loads((tmp_path / "room0.json").read_text())
@@ -65,12 +76,13 @@ def test_noncentral_hook_with_meta_and_gt_scores(name, ce_max, tmp_path):
 def test_central_hook_uses_camera_height_and_noncentral_refuses_without_rc():
     out = _outputs(0.0)
     batch = {"image": torch.rand(1, 3, 128, 256), "camera_height": torch.tensor([1.45])}
-    res = get_hook("layout_atlanta_central")(out, batch)
+    equirect = build({"type": "equirect", "width": 256, "height": 128})
+    res = get_hook("layout_atlanta_central")(out, batch, camera=equirect)
     assert res["layout"][0]["ok"] and res["layout"][0]["scale"] == "camera_height"
     assert res["layout"][0]["h_ceiling"] == pytest.approx(1.25, abs=0.02)
     res2 = get_hook("layout_atlanta")(out, batch)
     assert not res2["layout"][0]["ok"] and "rig radius" in res2["layout"][0]["reason"]
-    res3 = get_hook("layout_atlanta")(out, batch, rc=0.0)
+    res3 = get_hook("layout_atlanta")(out, batch, camera=equirect)
     assert not res3["layout"][0]["ok"] and "scale" in res3["layout"][0]["reason"]
 
 
@@ -82,9 +94,9 @@ def test_layout_roundtrip_overlay_and_top_view():
     lc, lf = lay.wall_lines()
     assert np.allclose((lc[:, :3] * lc[:, 3:]).sum(1), 0)         # Plücker identity
     img = np.zeros((64, 128, 3), np.uint8)
-    over = draw_wireframe(img, lay, rc=1.0)
+    over = draw_wireframe(img, lay, ring_camera(1.0, 128))
     assert over.shape == img.shape and over.sum() > 0 and img.sum() == 0
-    ax = plot_top_view([lay, back], labels=["a", "b"], rc=1.0)
+    ax = plot_top_view([lay, back], labels=["a", "b"], camera=ring_camera(1.0, 128))
     assert len(ax.lines) >= 2
 
 

@@ -4,11 +4,12 @@ import math
 import numpy as np
 import pytest
 
-from omnidl.metrics.layout import corner_error, iou_3d, polygon_area, polygon_intersection_area
-from omnidl.postprocess.layout import LayoutOptions, column_rays_from_angles, estimate_layout
+from omnidl.geometry.polygon import polygon_area, polygon_intersection_area
+from omnidl.metrics.layout import corner_error, iou_3d
+from omnidl.postprocess.layout import LayoutOptions, column_rays, estimate_layout
 from omnidl.postprocess.layout.corners import azimuth
-from omnidl.postprocess.layout.simulate import (Room, random_atlanta_room, random_manhattan_room, render_boundaries,
-                                                simulate_columns)
+from omnidl.apps.layout.simulate import (Room, random_atlanta_room, random_manhattan_room, render_boundaries,
+                                                ring_camera, simulate_columns)
 
 
 def _score(lay, room):
@@ -24,7 +25,7 @@ def test_small_acceptance_study(world, quantise):
     ces, ious = [], []
     for _ in range(3):
         room = random_manhattan_room(rng) if world == "manhattan" else random_atlanta_room(rng)
-        rays, prob = simulate_columns(room, 512, 256, 1.0, quantise=quantise)
+        rays, prob = simulate_columns(room, ring_camera(1.0, 512), quantise=quantise)
         lay = estimate_layout(rays, prob, world=world)
         assert lay.ok, lay.reason
         assert lay.scale == "metric"
@@ -40,20 +41,20 @@ def test_small_acceptance_study(world, quantise):
 @pytest.mark.parametrize("rc", [1.0, 0.65])
 def test_heights_are_metric_without_any_prior(rc):
     room = Room(np.array([[3.0, -2.5], [3.0, 3.5], [-2.0, 3.5], [-2.0, -2.5]]), 1.25, -1.45)
-    rays, prob = simulate_columns(room, 1024, 512, rc)
+    rays, prob = simulate_columns(room, ring_camera(rc, 1024))
     lay = estimate_layout(rays, prob, world="manhattan")
     assert lay.ok
     assert lay.h_ceiling == pytest.approx(1.25, abs=0.02) and lay.h_floor == pytest.approx(-1.45, abs=0.02)
     # the same room scaled by 2 gives twice the heights: the scale is really measured
     room2 = Room(room.polygon * 2, 2.5, -2.9)
-    rays2, prob2 = simulate_columns(room2, 1024, 512, rc)
+    rays2, prob2 = simulate_columns(room2, ring_camera(rc, 1024))
     lay2 = estimate_layout(rays2, prob2, world="manhattan")
     assert lay2.h_ceiling == pytest.approx(2.5, abs=0.04)
 
 
 def _visible(room, rc):
-    from omnidl.postprocess.layout.simulate import visible_corners
-    return visible_corners(room, rc)
+    from omnidl.apps.layout.simulate import visible_corners
+    return visible_corners(room, ring_camera(rc))
 
 
 def _on_one_ray(p, q, tol=1e-3):
@@ -70,7 +71,7 @@ def test_manhattan_single_hidden_wall_is_recovered_exactly(quantise):
     room = Room(poly, 1.2, -1.4)
     vis = _visible(room, 0.8)
     assert vis.tolist() == [True, True, False, True, True, True]
-    rays, prob = simulate_columns(room, 1024, 512, 0.8, quantise=quantise)
+    rays, prob = simulate_columns(room, ring_camera(0.8, 1024), quantise=quantise)
     lay = estimate_layout(rays, prob, world="manhattan")
     assert lay.ok, lay.reason
     assert lay.n_corners == 6 and lay.occluded.sum() == 1 and lay.info["n_occlusions"] == 1
@@ -91,7 +92,7 @@ def test_manhattan_two_hidden_walls_give_the_smallest_consistent_room():
     poly = np.array([[-1.5, -5.5], [6.5, -5.5], [6.5, -2.0], [2.3, -2.0], [2.3, 1.5], [-1.5, 1.5]])
     room = Room(poly, 1.2, -1.4)
     assert _visible(room, 0.8).tolist() == [True, False, False, True, True, True]
-    rays, prob = simulate_columns(room, 1024, 512, 0.8)
+    rays, prob = simulate_columns(room, ring_camera(0.8, 1024))
     lay = estimate_layout(rays, prob, world="manhattan")
     assert lay.ok, lay.reason
     assert lay.n_corners == 6 and lay.info["n_occlusions"] == 1
@@ -109,7 +110,7 @@ def test_manhattan_two_hidden_walls_give_the_smallest_consistent_room():
     assert iou > 0.98
     # the hidden walls really are unobservable: a deeper wing gives the very same input
     deeper = Room(poly + np.array([[0, 0], [1.0, 0], [1.0, 0], [0, 0], [0, 0], [0, 0]]), 1.2, -1.4)
-    rays2, prob2 = simulate_columns(deeper, 1024, 512, 0.8)
+    rays2, prob2 = simulate_columns(deeper, ring_camera(0.8, 1024))
     assert np.allclose(rays2.ceiling, rays.ceiling, rtol=0, atol=1e-12)
     assert np.allclose(rays2.floor, rays.floor, rtol=0, atol=1e-12) and np.array_equal(prob2, prob)
 
@@ -121,7 +122,7 @@ def test_atlanta_occlusion_wall_in_corner_ray_plane():
     poly = np.array([[-1.5, -5.0], [6.5, -5.0], [6.5, -1.5], [2.3, -1.5], [2.3, 2.0], [-0.7, 2.0], [-1.5, 1.2]])
     room = Room(poly, 1.2, -1.4)
     assert _visible(room, 0.8).tolist() == [True, True, False, True, True, True, True]
-    rays, prob = simulate_columns(room, 1024, 512, 0.8)
+    rays, prob = simulate_columns(room, ring_camera(0.8, 1024))
     lay = estimate_layout(rays, prob, world="atlanta")
     assert lay.ok, lay.reason
     assert lay.n_corners == len(poly) and lay.info["n_occlusions"] == 1 and lay.occluded.sum() == 1
@@ -147,7 +148,7 @@ def test_rounded_boundaries_of_walls_close_to_the_rig_keep_the_scale(world):
                      [1.845, 1.889], [0.287, 2.593], [-0.425, 1.016], [-4.772, 2.981], [-5.419, 1.551],
                      [-1.072, -0.414], [-3.638, -6.091]])
     room = Room(poly, 2.377, -1.670)
-    rays, prob = simulate_columns(room, 1024, 512, 1.0, quantise=True)
+    rays, prob = simulate_columns(room, ring_camera(1.0, 1024), quantise=True)
     lay = estimate_layout(rays, prob, world=world)
     assert lay.ok, lay.reason
     assert abs(lay.h_ceiling - 2.377) < 0.05 and abs(lay.h_floor + 1.670) < 0.05
@@ -157,7 +158,7 @@ def test_rounded_boundaries_of_walls_close_to_the_rig_keep_the_scale(world):
 
 def test_central_pipeline_with_camera_height():
     room = random_manhattan_room(np.random.default_rng(6), n_notches=2, rc=0.5)
-    rays, prob = simulate_columns(room, 512, 256, 0.0)
+    rays, prob = simulate_columns(room, ring_camera(0.0, 512))
     lay = estimate_layout(rays, prob, world="manhattan", camera_height=-room.h_floor)
     assert lay.ok and lay.scale == "camera_height"
     ce, iou = _score(lay, room)
@@ -166,7 +167,7 @@ def test_central_pipeline_with_camera_height():
 
 def _good_input():
     room = random_manhattan_room(np.random.default_rng(7))
-    return room, *simulate_columns(room, 256, 128, 1.0)
+    return room, *simulate_columns(room, ring_camera(1.0, 256))
 
 
 def test_degenerate_inputs_give_reasons_not_exceptions():
@@ -176,12 +177,13 @@ def test_degenerate_inputs_give_reasons_not_exceptions():
     one = np.zeros_like(prob)
     one[40] = 1.0
     cases["single wall"] = estimate_layout(rays, one)
-    lat_c, lat_f, _ = render_boundaries(room, 256, 1.0)
-    cases["nan boundaries"] = estimate_layout(column_rays_from_angles(lat_c * np.nan, lat_f, 1.0, 128), prob)
+    cam = ring_camera(1.0, 256)
+    rows, _ = render_boundaries(room, cam)
+    cases["nan boundaries"] = estimate_layout(column_rays(rows * [[np.nan], [1.0]], cam), prob)
     # boundaries on the horizon: the rays are parallel to every wall line
-    flat = np.zeros_like(lat_c)
-    cases["rays parallel to walls"] = estimate_layout(column_rays_from_angles(flat, flat, 1.0, 128), prob)
-    cases["rc -> 0"] = estimate_layout(column_rays_from_angles(lat_c, lat_f, 1e-6, 128), prob)
+    flat = np.full_like(rows, 64.0)
+    cases["rays parallel to walls"] = estimate_layout(column_rays(flat, cam), prob)
+    cases["rc -> 0"] = estimate_layout(column_rays(rows, ring_camera(1e-6, 256)), prob)
     for name, lay in cases.items():
         assert not lay.ok, name
         assert lay.reason and lay.scale == "none", name

@@ -4,7 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from omnidl.postprocess.layout.simulate import Room, random_manhattan_room, render_boundaries, simulate_columns
+from omnidl.apps.layout.simulate import (Room, random_manhattan_room, render_boundaries, ring_camera,
+                                                simulate_columns)
 from omnidl.postprocess.layout.solvers import (_quadratic_roots, atlanta_rows, manhattan_rows, ransac_iterations,
                                                solve_atlanta, solve_manhattan, solve_walls, solve_walls_central)
 
@@ -17,8 +18,8 @@ def _wall_truth(room, k):
 
 
 def _columns(room, rc, width=1024):
-    rays, _ = simulate_columns(room, width, width // 2, rc)
-    _, _, wall = render_boundaries(room, width, rc)
+    rays, _ = simulate_columns(room, ring_camera(rc, width))
+    _, wall = render_boundaries(room, ring_camera(rc, width))
     return rays, wall
 
 

@@ -10,7 +10,7 @@ also splits them into occlusion-free and occluded rooms, and the occluded ones b
 of walls that no column sees (two or more consecutive hidden walls: the hidden part of the room is
 not observable, only the smallest consistent room can be recovered).
 
-    python -m omnidl.postprocess.layout.acceptance --n 200 [--protocol both|all|thesis --width 1024 --rc 1.0 --out table.md]
+    python -m omnidl.apps.layout.acceptance --n 200 [--protocol both|all|thesis --width 1024 --rc 1.0 --out table.md]
 """
 from __future__ import annotations
 
@@ -20,22 +20,21 @@ import time
 
 import numpy as np
 
-from ...metrics.layout import layout_scores
-from .pipeline import estimate_layout
-from .simulate import Room, render_boundaries, simulate_columns, visible_corners
+from omnidl.metrics.layout import layout_scores
+from omnidl.postprocess.layout.pipeline import estimate_layout
+from omnidl.apps.layout.simulate import Room, render_boundaries, ring_camera, simulate_columns, visible_corners
 
 
 def engine_room(seed: int, manhattan: bool, rc: float) -> Room:
     """A data-engine room seen from an engine-placed upright camera, in the layout frame."""
-    from ...cameras import build
-    from ...synth import place_camera, sample_room
-    from ...synth.room import is_manhattan
-    from .rays import R_WORLD_FROM_CAM
+    from omnidl.geometry.rotations import UPRIGHT_TO_WORLD
+    from omnidl.synth import place_camera, sample_room
+    from omnidl.synth.room import is_manhattan
     for k in range(100):
         scene = sample_room(seed * 1000 + k, manhattan_ratio=1.0 if manhattan else 0.4, furniture=False)
         if not manhattan and is_manhattan(scene.polygon, tol_deg=1e-3):
             continue
-        cam = build({"type": "noncentral_pano", "width": 64, "height": 32, "rc": rc})
+        cam = ring_camera(rc, 64)
         try:   # the engine keeps the rig circle Rc + margin away from walls, floor and ceiling
             pose = place_camera(scene, cam, seed * 1000 + k, rotation="upright")
         except (ValueError, RuntimeError):
@@ -43,7 +42,7 @@ def engine_room(seed: int, manhattan: bool, rc: float) -> Room:
         R, t = pose[:3, :3], pose[:3, 3]
         P = np.c_[scene.polygon, np.zeros(len(scene.polygon))]
         cam_pts = (P - t) @ R                                   # R^T (X - t)
-        lay = cam_pts @ R_WORLD_FROM_CAM.T
+        lay = cam_pts @ np.asarray(UPRIGHT_TO_WORLD).T
         return Room(lay[:, :2], float(scene.height - t[2]), float(-t[2]))
     raise RuntimeError("no room")
 
@@ -56,7 +55,7 @@ def hidden_run(room: Room, width: int, rc: float) -> int:
     leave at least one offset unobservable from this viewpoint (only the smallest consistent room
     can be given), whatever the pipeline.
     """
-    _, _, k = render_boundaries(room, width, rc)
+    _, k = render_boundaries(room, ring_camera(rc, width))
     n = len(room.polygon)
     seen = np.zeros(n, bool)
     seen[np.unique(k[np.isfinite(k)].astype(int))] = True
@@ -83,7 +82,7 @@ def sample_rooms(n: int, manhattan: bool, rc: float, seed: int = 0, occlusion_fr
         while len(rooms) < n:
             room = engine_room(seed + i, manhattan, rc)
             i += 1
-            if occlusion_free and not visible_corners(room, rc).all():
+            if occlusion_free and not visible_corners(room, ring_camera(rc)).all():
                 continue
             rooms.append(room)
             bar.update()
@@ -104,7 +103,8 @@ def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, p
     for world in ("manhattan", "atlanta"):
         rooms = sample_rooms(n, world == "manhattan", rc, seed, occlusion_free, progress)
         runs = np.array([hidden_run(r, width, rc) for r in rooms])
-        occluded = np.array([not visible_corners(r, rc).all() for r in rooms])
+        camera = ring_camera(rc, width)
+        occluded = np.array([not visible_corners(r, camera).all() for r in rooms])
         for quant in (False, True):
             keys = ("ce", "iou_3d", "iou_3d_u2s", "cen", "iou_2d", "h_err")
             res = {k: np.full(n, np.nan) for k in keys}
@@ -112,7 +112,7 @@ def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, p
             times = []
             for i, room in enumerate(tqdm(rooms, desc=f"{world} {'rounded' if quant else 'sub-pixel'}",
                                           disable=not progress)):
-                rays, prob = simulate_columns(room, width, width // 2, rc, quantise=quant)
+                rays, prob = simulate_columns(room, camera, quantise=quant)
                 t0 = time.perf_counter()
                 lay = estimate_layout(rays, prob, world=world)
                 times.append(time.perf_counter() - t0)
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     md = "\n".join(tables)
     print(md)
     if a.out:
-        from ...utils.io import atomic_write_text
+        from omnidl.utils.io import atomic_write_text
         atomic_write_text(a.out, md)
     return 0
 

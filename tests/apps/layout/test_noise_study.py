@@ -1,7 +1,7 @@
 """Noise study CLI: exact at zero noise, errors grow with noise, files written."""
 import numpy as np
 
-from omnidl.postprocess.layout import noise_study
+from omnidl.apps.layout import noise_study
 
 
 def test_noise_study_small_run(tmp_path):

@@ -1,19 +1,24 @@
 """Exact synthetic rooms for tests, the acceptance study, benchmarks and the noise study.
 
 A room is a simple polygon (layout frame, metres, counter-clockwise seen from above) extruded
-between ``z = h_floor < 0`` and ``z = h_ceiling > 0`` (the camera circle is at ``z = 0``). Its
-per-column boundaries are computed by casting every column's radial ray (start ``Rc * b``,
-horizontal direction ``b``) against the walls: this is exactly the circular non-central panorama
-(or the equirectangular one for ``Rc = 0``), an independent ground truth for the solvers.
+between ``z = h_floor < 0`` and ``z = h_ceiling > 0`` (the camera is at ``z = 0``). Its per-column
+boundaries are exact for the given camera: every column's top-view ray (``camera.unproject``) is cast
+against the walls and the ceiling/floor points there are projected back with ``camera.project``
+(:func:`omnidl.data.layout_targets.room_boundary_rows`, the data engine's layout targets). The study's
+default camera is the circular non-central panorama (:func:`ring_camera`; radius 0 = equirectangular).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from .rays import ColumnRays, column_azimuths, column_rays_from_angles
+from omnidl.cameras import Camera, resolve_camera
+from omnidl.data.layout_targets import corner_probability, room_boundary_rows
+from omnidl.geometry.polygon import polygon_area, ray_polygon_hit
+from omnidl.postprocess.layout.rays import ColumnRays, camera_rays, column_rays, project_layout_points
 
 
 @dataclass
@@ -33,92 +38,64 @@ class Room:
         return np.concatenate([c, f], 0)
 
 
-def polygon_area(poly: np.ndarray) -> float:
-    """Signed area (positive for counter-clockwise) of a ``(N, 2)`` polygon."""
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+def ring_camera(rc: float = 1.0, width: int = 1024, height: int | None = None) -> Camera:
+    """The studies' camera: the circular non-central panorama of radius ``rc`` metres (``width x height``,
+    default ``height = width / 2``); ``rc = 0`` has the geometry of the equirectangular panorama."""
+    return resolve_camera("noncentral_pano", width, width // 2 if height is None else height, rc=float(rc))
 
 
-def _segments_hit(poly: np.ndarray, origin: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """First wall hit by 2-D rays ``origin + s b`` (s > 0): range ``s (M,)`` and wall index ``(M,)``."""
-    a = poly
-    e = np.roll(poly, -1, 0) - poly                     # (N, 2)
-    # solve origin + s b = a + t e  ->  s b - t e = a - origin
-    den = b[:, None, 0] * (-e[None, :, 1]) - b[:, None, 1] * (-e[None, :, 0])      # cross(b, -e)
-    r = a[None] - origin[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (r[..., 0] * (-e[None, :, 1]) - r[..., 1] * (-e[None, :, 0])) / den
-        t = (b[:, None, 0] * r[..., 1] - b[:, None, 1] * r[..., 0]) / den
-    ok = (np.abs(den) > 1e-12) & (s > 1e-9) & (t >= -1e-12) & (t <= 1 + 1e-12)
-    s = np.where(ok, s, np.inf)
-    k = np.argmin(s, 1)
-    return s[np.arange(len(s)), k], k
+def render_boundaries(room: Room, camera: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Exact per-column boundary rows of ``room`` seen by ``camera`` (any camera spec).
 
-
-def render_boundaries(room: Room, width: int = 1024, rc: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Exact per-column boundary latitudes of ``room`` seen by a circular panorama of radius ``rc``.
-
-    Returns ``lat_ceiling (W,)``, ``lat_floor (W,)`` (radians, up positive; NaN where the ray hits
-    nothing) and ``wall (W,)`` the index of the wall each column sees.
+    Returns ``rows (2, W)`` (continuous pixel rows of the ceiling and the floor boundary; NaN where the
+    column sees no wall) and ``wall (W,)`` the index of the wall each column sees.
     """
-    lon = column_azimuths(width)
-    b = np.stack([np.sin(lon), np.cos(lon)], -1)
-    s, k = _segments_hit(np.asarray(room.polygon, float), rc * b, b)
-    lat_c = np.arctan2(room.h_ceiling, s)
-    lat_f = np.arctan2(room.h_floor, s)
-    bad = ~np.isfinite(s)
-    lat_c[bad] = np.nan
-    lat_f[bad] = np.nan
-    return lat_c, lat_f, k
+    return room_boundary_rows(room.polygon, room.h_ceiling, room.h_floor, camera)
 
 
-def corner_columns(room: Room, width: int) -> np.ndarray:
+def corner_columns(room: Room, camera: Any) -> np.ndarray:
     """Continuous column coordinate ``u`` (pixels, ``[0, W)``) of every corner's vertical edge."""
-    lon = np.arctan2(room.polygon[:, 0], room.polygon[:, 1])
-    return np.mod((lon + math.pi) / (2 * math.pi) * width, width)
+    cam = resolve_camera(camera)
+    n = len(room.polygon)
+    mid = np.c_[room.polygon, np.full(n, 0.5 * (room.h_ceiling + room.h_floor))]
+    uv, _ = project_layout_points(cam, mid)
+    return np.mod(uv[:, 0], cam.width)
 
 
-def visible_corners(room: Room, rc: float = 1.0, tol: float = 1e-6) -> np.ndarray:
-    """``(N,)`` bool: the vertical edge of each corner is seen (not hidden behind another wall)."""
+def visible_corners(room: Room, camera: Any, tol: float = 1e-6) -> np.ndarray:
+    """``(N,)`` bool: the vertical edge of each corner is seen (not hidden behind another wall).
+
+    The corner's column ray (``camera.unproject`` of its column) must reach the corner before any wall.
+    """
+    cam = resolve_camera(camera)
     poly = np.asarray(room.polygon, float)
-    b = poly / np.linalg.norm(poly, axis=1, keepdims=True)
-    s, _ = _segments_hit(poly, rc * b, b)
-    dist = np.linalg.norm(poly, axis=1) - rc
+    u = corner_columns(room, cam)
+    o, d, _ = camera_rays(cam, np.stack([u, np.full_like(u, cam.height / 2.0)], -1))
+    o, b = o[:, :2], d[:, :2] / np.linalg.norm(d[:, :2], axis=1, keepdims=True)
+    s, _ = ray_polygon_hit(poly, o, b)
+    dist = np.linalg.norm(poly - o, axis=1)
     return s >= dist - 1e-6 - tol * dist
 
 
-def corner_probability(columns: np.ndarray, width: int, base: float = 0.96) -> np.ndarray:
-    """HorizonNet corner target: ``base ** d``, ``d`` the circular distance (columns) to the nearest corner."""
-    u = np.arange(width) + 0.5
-    if len(columns) == 0:
-        return np.zeros(width)
-    d = np.abs(u[:, None] - np.asarray(columns)[None])
-    d = np.minimum(d, width - d).min(1)
-    return base ** d
+def quantise_rows(rows: np.ndarray) -> np.ndarray:
+    """Round continuous pixel rows to whole rows (pixel centres), as a network reading integer rows would."""
+    return np.floor(rows) + 0.5
 
 
-def quantise_rows(lat: np.ndarray, height: int) -> np.ndarray:
-    """Round latitudes to whole pixel rows (pixel centres), as a network reading integer rows would."""
-    v = (math.pi / 2 - lat) * height / math.pi
-    v = np.floor(v) + 0.5
-    return math.pi / 2 - v * math.pi / height
-
-
-def simulate_columns(room: Room, width: int = 1024, height: int = 512, rc: float = 1.0,
-                     quantise: bool = False, noise_px: float = 0.0,
+def simulate_columns(room: Room, camera: Any, quantise: bool = False, noise_px: float = 0.0,
                      rng: np.random.Generator | None = None) -> tuple[ColumnRays, np.ndarray]:
-    """Per-column rays and corner probability ``(W,)`` for ``room`` (optionally row-quantised/noisy)."""
-    lat_c, lat_f, _ = render_boundaries(room, width, rc)
+    """Per-column rays and corner probability ``(W,)`` for ``room`` seen by ``camera`` (optionally
+    row-quantised, or with Gaussian noise of ``noise_px`` pixel rows)."""
+    cam = resolve_camera(camera)
+    rows, _ = render_boundaries(room, cam)
     if noise_px > 0:
         rng = rng or np.random.default_rng(0)
-        step = math.pi / height
-        lat_c = lat_c + rng.normal(0, noise_px * step, lat_c.shape)
-        lat_f = lat_f + rng.normal(0, noise_px * step, lat_f.shape)
+        rows = rows - rng.normal(0, noise_px, rows.shape)
     if quantise:
-        lat_c, lat_f = quantise_rows(lat_c, height), quantise_rows(lat_f, height)
-    vis = visible_corners(room, rc)
-    prob = corner_probability(corner_columns(room, width)[vis], width)
-    return column_rays_from_angles(lat_c, lat_f, rc, height=height), prob
+        rows = quantise_rows(rows)
+    vis = visible_corners(room, cam)
+    prob = corner_probability(corner_columns(room, cam)[vis], cam.width)
+    return column_rays(rows, cam), prob
 
 
 # ---------------------------------------------------------------------------------------------
@@ -177,8 +154,13 @@ def random_manhattan_room(rng: np.random.Generator, n_notches: int | None = None
 
 
 def random_atlanta_room(rng: np.random.Generator, n_clips: int | None = None, min_wall: float = 0.5,
-                        rc: float = 1.0) -> Room:
-    """A Manhattan room whose convex corners are clipped by oblique walls (thesis §5.5), 5 to 14 walls."""
+                        rc: float = 1.0, camera: Any = None) -> Room:
+    """A Manhattan room whose convex corners are clipped by oblique walls (thesis §5.5), 5 to 14 walls.
+
+    Every corner is visible from ``camera`` (default :func:`ring_camera` of radius ``rc``); the walls
+    stay ``rc + 0.4`` m away from the camera.
+    """
+    camera = ring_camera(rc) if camera is None else resolve_camera(camera)
     for _ in range(1000):
         room = random_manhattan_room(rng, min_wall=min_wall, rc=rc)
         poly = room.polygon
@@ -211,7 +193,7 @@ def random_atlanta_room(rng: np.random.Generator, n_clips: int | None = None, mi
         if dist.min() < rc + 0.4:
             continue
         r2 = Room(poly2, room.h_ceiling, room.h_floor)
-        if not visible_corners(r2, rc).all():
+        if not visible_corners(r2, camera).all():
             continue
         return r2
     raise RuntimeError("could not sample an Atlanta room")

@@ -3,8 +3,8 @@ import math
 
 import numpy as np
 
-from omnidl.postprocess.layout.acceptance import hidden_run, run_study, to_markdown
-from omnidl.postprocess.layout.simulate import Room
+from omnidl.apps.layout.acceptance import hidden_run, run_study, to_markdown
+from omnidl.apps.layout.simulate import Room
 
 
 def test_hidden_run_counts_consecutive_walls_no_column_sees():

@@ -1,8 +1,8 @@
 """Noise sensitivity of the solvers (thesis §5.6.2, Fig. 5.7): corner, direction and depth error vs the
-standard deviation of Gaussian noise added to ground-truth boundary rays.
+standard deviation of Gaussian noise added to ground-truth boundary rows.
 
-Rooms are exact synthetic rooms without occlusion (:mod:`.simulate`); noise (``sigma`` pixels of
-latitude) is added to every column's ceiling and floor boundary, the walls' columns come from the
+Rooms are exact synthetic rooms without occlusion (:mod:`.simulate`, seen by its circular panorama);
+noise (``sigma`` pixel rows) is added to every column's ceiling and floor boundary, the walls' columns come from the
 ground truth (a margin of 2 columns at each corner), and three solvers are compared, as in the thesis:
 
 * ``single-wall``: §5.4.1 on each wall alone (its own heights; walls seen by fewer than 12 columns
@@ -15,7 +15,7 @@ Metrics (Bermudez-Cameo et al. 2016): direction error ``arccos(|l . l_gt|)`` (de
 ``| |m| - |m_gt| |`` of the ceiling/floor lines (metres), corner error of consecutive line
 intersections (metres). Writes ``noise_study.md`` and ``noise_study.png``.
 
-    python -m omnidl.postprocess.layout.noise_study [--rooms 10 --sigmas 0 0.25 0.5 1 2 --width 512 --out DIR]
+    python -m omnidl.apps.layout.noise_study [--rooms 10 --sigmas 0 0.25 0.5 1 2 --width 512 --out DIR]
 """
 from __future__ import annotations
 
@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .corners import line_intersection
-from .rays import column_rays_from_angles
-from .simulate import random_atlanta_room, random_manhattan_room, render_boundaries
-from .solvers import atlanta_rows, manhattan_rows, solve_atlanta, solve_manhattan, solve_walls
+from omnidl.postprocess.layout.corners import line_intersection
+from omnidl.postprocess.layout.rays import column_rays
+from omnidl.apps.layout.simulate import random_atlanta_room, random_manhattan_room, render_boundaries, ring_camera
+from omnidl.postprocess.layout.solvers import atlanta_rows, manhattan_rows, solve_atlanta, solve_manhattan, solve_walls
 
 SOLVERS = ("single-wall", "manhattan", "atlanta")
 #: walls seen by fewer columns are left out of the single-wall statistics (the solver needs spread rays)
@@ -70,20 +70,20 @@ def run(rooms: int = 10, sigmas=(0.0, 0.25, 0.5, 1.0, 2.0), width: int = 512, rc
     """``{solver: {"dir": [...], "depth": [...], "ce": [...]}}`` means over rooms x reps per sigma."""
     from tqdm import tqdm
     rng = np.random.default_rng(seed)
-    H = width // 2
+    camera = ring_camera(rc, width)
     res = {s: {"dir": [], "depth": [], "ce": []} for s in SOLVERS}
     room_list = [(random_manhattan_room(rng, rc=rc) if i % 2 == 0 else random_atlanta_room(rng, rc=rc))
                  for i in range(rooms)]
     for sigma in tqdm(sigmas, desc="noise levels"):
         acc = {s: {"dir": [], "depth": [], "ce": []} for s in SOLVERS}
         for room in room_list:
-            lat_c, lat_f, wall = render_boundaries(room, width, rc)
+            rows, wall = render_boundaries(room, camera)
             th_gt, d_gt = _truth(room)
             n = len(room.polygon)
             for _ in range(reps):
-                nc = lat_c + rng.normal(0, sigma * math.pi / H, width)
-                nf = lat_f + rng.normal(0, sigma * math.pi / H, width)
-                rays = column_rays_from_angles(nc, nf, rc, H)
+                nc = rows[0] - rng.normal(0, sigma, width)
+                nf = rows[1] - rng.normal(0, sigma, width)
+                rays = column_rays(np.stack([nc, nf]), camera)
                 cols = []
                 for k in range(n):
                     c = np.flatnonzero((wall == k) & rays.valid)
@@ -130,7 +130,7 @@ def run(rooms: int = 10, sigmas=(0.0, 0.25, 0.5, 1.0, 2.0), width: int = 512, rc
 
 
 def to_markdown(res: dict) -> str:
-    lines = ["Median errors over rooms (noise sigma in pixels of latitude)\n",
+    lines = ["Median errors over rooms (noise sigma in pixel rows)\n",
              "| solver | sigma (px) | direction (deg) | depth (m) | corner (m) |", "|---|---|---|---|---|"]
     for s in SOLVERS:
         for i, sg in enumerate(res["sigmas"]):
@@ -142,7 +142,7 @@ def plot(res: dict, path: str | Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from ...utils.io import atomic_write
+    from omnidl.utils.io import atomic_write
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
     colours = {"single-wall": "tab:red", "manhattan": "tab:blue", "atlanta": "tab:green"}
     for j, (key, lab) in enumerate((("ce", "corner error (m)"), ("dir", "direction error (deg)"),
@@ -172,7 +172,7 @@ def main(argv=None) -> int:
     res = run(a.rooms, a.sigmas, a.width, a.rc, a.seed, a.reps)
     md = to_markdown(res)
     print(md)
-    from ...utils.io import atomic_write_text
+    from omnidl.utils.io import atomic_write_text
     out = Path(a.out)
     atomic_write_text(out / "noise_study.md", md)
     plot(res, out / "noise_study.png")
