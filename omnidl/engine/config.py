@@ -116,6 +116,9 @@ class TrainConfig:
     postprocess_options: Any = field(default_factory=dict)
     eval: EvalConfig = field(default_factory=EvalConfig)  # evaluate.py options (here too: experiments set both)
     search: Any = None                 # filled by +search=... (loss-weight search)
+    # an experiment that trains with a search's loss weights: {name: <search>, result: <its best loss config,
+    # loaded by an optional default when the search has written it>} (see configs/experiment/*-B*.yaml)
+    loss_search: Any = None
     name: str = "run"                  # free label (experiments set it)
     notes: Any = None
 
@@ -142,3 +145,17 @@ def register_configs() -> None:
     cs.store(group="sched", name="schema", node=SchedConfig)
     cs.store(group="trainer", name="schema", node=TrainerConfig)
     _REGISTERED = True
+
+
+def missing_search_result(cfg) -> str | None:
+    """The warning for a run whose experiment wants a search's loss weights (``loss_search``) that the search
+    has not written yet (the experiment then falls back to the weights it names); None otherwise."""
+    spec = cfg.get("loss_search")
+    if not spec or spec.get("result") is not None:
+        return None
+    name = spec.get("name", "?")
+    loss = cfg.get("loss") or {}
+    return (f"the loss weights of the '{name}' search were not found (configs/loss/{name}_best.yaml does not exist): "
+            f"training with the experiment's fallback weights loss.alpha_* = "
+            f"{[loss.get(k) for k in ('alpha_semantic', 'alpha_depth', 'alpha_margin', 'alpha_object')]}. "
+            f"Run python train.py +search={name} first to train with the searched weights.")

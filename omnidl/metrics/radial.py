@@ -16,8 +16,6 @@ image) or from a fixed ``radius`` map given at construction.
 """
 from __future__ import annotations
 
-import csv
-import io
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -175,19 +173,6 @@ class RadialMetrics:
                 if k.endswith(("_mean", "_all")):
                     out[f"radial/{k}/bin{b}"] = v
         return out
-
-
-def rows_to_csv(rows: Sequence[Mapping[str, object]]) -> str:
-    """CSV text of a list of row dicts (the union of their keys, first-seen order)."""
-    keys: list[str] = []
-    for r in rows:
-        keys += [k for k in r if k not in keys]
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=keys, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: r.get(k, "") for k in keys})
-    return buf.getvalue()
 
 
 def plot_radial(curves: Mapping[str, Sequence[Mapping[str, float]]], metrics: Sequence[str], path: str | Path,

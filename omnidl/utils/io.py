@@ -1,9 +1,16 @@
-"""Atomic file writes: every checkpoint and result file goes through these (temp file + rename)."""
+"""Atomic file writes: every checkpoint and result file goes through these (temp file + rename).
+
+Also the two text formats every result file shares: JSON with numpy/torch values (:func:`json_default`)
+and CSV from row dicts (:func:`rows_to_csv`).
+"""
 from __future__ import annotations
 
+import csv
+import io
 import json
 import os
 import tempfile
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Callable
 
@@ -38,7 +45,7 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any, indent: int = 2) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=indent, sort_keys=False, default=_json_default) + "\n")
+    return atomic_write_text(path, json.dumps(obj, indent=indent, sort_keys=False, default=json_default) + "\n")
 
 
 def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
@@ -56,7 +63,27 @@ def atomic_imwrite(path: str | os.PathLike, image) -> Path:
     return atomic_write_bytes(path, buf.tobytes())
 
 
-def _json_default(o: Any):
+def atomic_write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, object]]) -> Path:
+    """Write :func:`rows_to_csv` of ``rows`` atomically."""
+    return atomic_write_text(path, rows_to_csv(rows))
+
+
+def rows_to_csv(rows: Sequence[Mapping[str, object]]) -> str:
+    """CSV text of a list of row dicts: the union of their keys (first-seen order) as the header, ``""``
+    where a row lacks a key, ``\n`` line ends."""
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=keys, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: r.get(k, "") for k in keys})
+    return buf.getvalue()
+
+
+def json_default(o: Any):
+    """``json.dumps(..., default=json_default)``: numpy scalars/arrays and tensors as numbers/lists, else ``str``."""
     try:
         import numpy as np
         if isinstance(o, np.generic):

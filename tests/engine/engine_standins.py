@@ -82,3 +82,30 @@ class TinyMetrics:
 
     def compute(self):
         return {"mae": self.abs / max(self.n, 1), "acc": self.correct / max(self.total, 1)}
+
+
+#: (hook options) of every call of the ``engine_test_scaled_depth`` hook (tests/engine/test_hooks.py)
+HOOK_CALLS: list[dict] = []
+
+
+def scaled_depth_hook(outputs, batch, scale=1.0, export_dir=None):
+    """A post-processing hook stand-in: ``{"scaled_depth": scale * depth, "hook_calls": n}``."""
+    HOOK_CALLS.append({"scale": scale, "export_dir": export_dir})
+    return {"scaled_depth": outputs["depth"] * scale, "hook_calls": len(HOOK_CALLS)}
+
+
+class HookMetrics:
+    """Reads a hook product: the mean of ``outputs["scaled_depth"]`` (a KeyError without the hook)."""
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self):
+        self.sum, self.n = 0.0, 0
+
+    def update(self, outputs, batch):
+        self.sum += float(outputs["scaled_depth"].sum())
+        self.n += outputs["scaled_depth"].numel()
+
+    def compute(self):
+        return {"scaled_depth": self.sum / max(self.n, 1)}

@@ -121,3 +121,10 @@ def test_missing_model_or_data_is_a_clear_error(cfg_factory):
     cfg = cfg_factory(["trainer.max_steps=1"], standin=False)
     with pytest.raises(ValueError, match="model=<name>"):
         train(cfg)
+
+
+def test_missing_search_result_is_announced(cfg_factory, caplog):
+    cfg = cfg_factory(["trainer.max_steps=1", "trainer.tensorboard=false", "+loss_search.name=my_search"])
+    with caplog.at_level(logging.WARNING, logger="omnidl.engine"):
+        train(cfg)
+    assert "'my_search' search were not found" in caplog.text and "+search=my_search" in caplog.text

@@ -21,6 +21,7 @@ def quadratic(params, idx):
     return {"loss": math.log10(params["loss.a"]) ** 2 + 4 * (params["loss.b"] - 0.3) ** 2}
 
 
+@pytest.mark.slow
 def test_finds_known_optimum(tmp_path):
     res = run_search(_spec(14), quadratic, tmp_path / "s.json", progress=False)
     assert len(res.completed) == 14
@@ -49,6 +50,7 @@ class Crash(BaseException):
     pass
 
 
+@pytest.mark.slow
 def test_resume_after_crash_continues_at_interrupted_trial(tmp_path):
     state = tmp_path / "s.json"
     seen = []

@@ -23,6 +23,7 @@ def fake_train(cfg):
     return {"err": math.log10(cfg.loss.alpha_a) ** 2, "other": 1.0}
 
 
+@pytest.mark.slow
 def test_search_writes_best_config_table_and_plot(tmp_path):
     res = run_search_from_config(_cfg(tmp_path), train_fn=fake_train)
     assert len(res.completed) == 4
