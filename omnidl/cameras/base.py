@@ -115,6 +115,13 @@ class Camera:
         """True when column ``W`` is column ``0`` again (full 360° longitude range)."""
         return False
 
+    @property
+    def panoramic(self) -> bool:
+        """True for panoramas (columns are longitudes, rows latitudes about a vertical axis): kernels of
+        projected convolutions stay upright there instead of turning about the optical axis. Default:
+        :attr:`wraps_horizontally`; longitude–latitude models say ``True`` even for a partial range."""
+        return self.wraps_horizontally
+
     # -- derived helpers ------------------------------------------------------------------
     @property
     def size(self) -> tuple[int, int]:
@@ -206,6 +213,10 @@ class ResizedCamera(Camera):
     @property
     def wraps_horizontally(self) -> bool:
         return self.base.wraps_horizontally and abs(self.scale_x * self.base.width - self.width) < 1e-9
+
+    @property
+    def panoramic(self) -> bool:  # type: ignore[override]
+        return self.wraps_horizontally or self.base.panoramic
 
     def _scale(self, like: Tensor) -> Tensor:
         return torch.tensor([self.scale_x, self.scale_y], dtype=like.dtype, device=like.device)

@@ -63,6 +63,11 @@ class Equirectangular(Camera):
                              "in [-pi/2, pi/2]")
 
     @property
+    def panoramic(self) -> bool:  # type: ignore[override]
+        """Always: columns are longitudes and rows latitudes (see :attr:`Camera.panoramic`)."""
+        return True
+
+    @property
     def wraps_horizontally(self) -> bool:
         return abs(self.lon_max - self.lon_min - 2 * math.pi) < 1e-9
 

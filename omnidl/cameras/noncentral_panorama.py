@@ -51,6 +51,11 @@ class NonCentralPanorama(Camera):
                                lat_min=self.lat_min, lat_max=self.lat_max)
 
     @property
+    def panoramic(self) -> bool:  # type: ignore[override]
+        """Always: columns are longitudes and rows latitudes (see :attr:`Camera.panoramic`)."""
+        return True
+
+    @property
     def wraps_horizontally(self) -> bool:
         return self.angles.wraps_horizontally
 

@@ -56,6 +56,8 @@ def _load_yaml(path: Path) -> dict:
         cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     except Exception as exc:  # noqa: BLE001 (YAML/interpolation errors of many kinds)
         raise ValueError(f"camera config {path}: cannot read it as YAML ({exc})") from exc
+    if isinstance(cfg, dict) and "type" not in cfg and isinstance(cfg.get("camera"), dict):
+        cfg = cfg["camera"]  # a file holding {camera: {...}} (e.g. a saved run config's node)
     if not isinstance(cfg, dict) or "type" not in cfg:
         raise ValueError(f"camera config {path}: expected a mapping with a 'type' field (one of {list_cameras()})")
     return cfg
@@ -95,7 +97,7 @@ def _from_text(spec: str | os.PathLike, width: int | None, height: int | None,
 
 
 def resolve_camera(spec: Any, width: int | None = None, height: int | None = None, *, default: Any = _REQUIRED,
-                   check_aspect: bool = False, **fields: Any) -> Camera | None:
+                   check_aspect: bool = False, allow_files: bool = True, **fields: Any) -> Camera | None:
     """A :class:`Camera` from any camera spec.
 
     Args:
@@ -103,8 +105,9 @@ def resolve_camera(spec: Any, width: int | None = None, height: int | None = Non
             - a :class:`Camera` (returned as is, or resized);
             - a config mapping or omegaconf ``DictConfig`` (``{"type": ..., **fields}``; a ``_target_`` key
               is ignored; ``{"calib_file": path, ...}`` without ``type`` is a Kannala–Brandt camera);
-            - a path to a camera YAML file (``.yaml``/``.yml``) or to a Kannala–Brandt calibration text
-              file (``.txt``/``.calib``/``.dat``: ``cx cy fx fy W H FOV k1 k2 k3 k4``);
+            - a path to a camera YAML file (``.yaml``/``.yml``; a top-level ``camera:`` node is unwrapped) or
+              to a Kannala–Brandt calibration text file (``.txt``/``.calib``/``.dat``:
+              ``cx cy fx fy W H FOV k1 k2 k3 k4``);
             - a name of ``configs/camera/<name>.yaml`` (:data:`CAMERA_CONFIG_DIR`), e.g. ``"kb_f195"``;
             - a registered camera type (:func:`list_cameras`), built at ``width x height`` with ``fields``;
             - ``None``: returns ``default`` (resized like any camera); without ``default`` it is an error.
@@ -113,6 +116,8 @@ def resolve_camera(spec: Any, width: int | None = None, height: int | None = Non
         default: the camera (or ``None``) that stands in for ``spec=None``.
         check_aspect: with a size to resize to, raise ``ValueError`` if its aspect ratio disagrees
             with the camera's (:func:`check_image_size`).
+        allow_files: ``False`` accepts in-memory specs only (``Camera``, mapping, ``None``) and raises
+            ``TypeError`` for a name or path: layers never read files (resolve those first).
         **fields: model fields that override a config's (or a calibration file's); not for a ``Camera``.
 
     Raises:
@@ -138,6 +143,10 @@ def resolve_camera(spec: Any, width: int | None = None, height: int | None = Non
     elif isinstance(spec, Mapping) or hasattr(spec, "items"):
         cam = _from_mapping(spec, fields)
     elif isinstance(spec, (str, os.PathLike)):
+        if not allow_files:
+            raise TypeError(f"camera must be an omnidl Camera, a camera config mapping or None, got "
+                            f"{type(spec).__name__} {str(spec)!r}; resolve names and files with "
+                            "omnidl.cameras.resolve_camera first")
         cam, sized = _from_text(spec, width, height, fields)
     else:
         raise TypeError(f"camera spec of type {type(spec).__name__} ({spec!r}); expected {ACCEPTED}")

@@ -38,18 +38,10 @@ from torch.utils.data import Dataset
 
 from omnidl.cameras.base import Camera, ResizedCamera
 from omnidl.cameras.equirectangular import Equirectangular
-from omnidl.cameras.resolve import CALIB_SUFFIXES, resolve_camera  # noqa: F401 (CALIB_SUFFIXES: re-export)
+from omnidl.cameras.resolve import resolve_camera
 from omnidl.geometry import euler_to_matrix, reproject
 
 SPLITS = {"train": 0, "val": 1, "test": 2}
-
-
-def load_camera(spec: Any, width: int | None = None, height: int | None = None, check_aspect: bool = True
-                ) -> Camera:
-    """:func:`omnidl.cameras.resolve_camera` with the aspect-ratio check on by default: a ``Camera``, a
-    config mapping (``calib_file`` allowed), a KB calibration text file, a camera YAML file or a
-    ``configs/camera/<name>.yaml`` name, resized to ``width x height`` (same aspect ratio)."""
-    return resolve_camera(spec, width, height, check_aspect=check_aspect)
 
 
 def principal_point(camera: Camera) -> tuple[float, float]:
@@ -107,7 +99,8 @@ class ViewsFromPanoramas(Dataset):
     """Views of any central camera rendered from equirectangular panoramas at random orientations.
 
     Args:
-        camera: see :func:`load_camera` (a KB calibration file loads directly).
+        camera: any spec of :func:`omnidl.cameras.resolve_camera` (a ``Camera``, a config mapping, a KB
+            calibration file, a camera YAML or a ``configs/camera`` name).
         width, height: rendered image size (the camera is resized to it; same aspect ratio required);
             default: the camera's own size.
         panoramas: panorama source (dataset object or config mapping; default synthetic 512x256).
@@ -130,7 +123,7 @@ class ViewsFromPanoramas(Dataset):
             raise ValueError(f"depth_mode must be 'nearest' or 'bilinear', got {depth_mode!r}")
         if views_per_panorama < 1:
             raise ValueError(f"views_per_panorama must be >= 1, got {views_per_panorama}")
-        self.camera = load_camera(camera, width, height)
+        self.camera = resolve_camera(camera, width, height, check_aspect=True)
         if not self.camera.central:
             raise ValueError(f"ViewsFromPanoramas renders central cameras only, got {type(self.camera).__name__}")
         self.panoramas = build_panoramas(panoramas, split)

@@ -1,6 +1,6 @@
 """Torch datasets over the built-in data engine (:mod:`omnidl.synth`), rendered on the fly.
 
-Sample ``i`` of split ``s`` is drawn from ``numpy.random.SeedSequence([seed, split_id, i])``: splits never
+Sample ``i`` of split ``s`` is :func:`omnidl.synth.render_sample` ``(camera, seed, s, i)``: splits never
 share a room, and the same ``(seed, split, index)`` gives a bit-identical sample. The returned dict is
 documented in ``docs/synth.md``.
 """
@@ -15,39 +15,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from omnidl.synth import RoomLimits, place_camera, render, sample_room
-from omnidl.synth.cameras import resolve_camera
+from omnidl.cameras.resolve import resolve_camera
+from omnidl.synth import SPLITS, RoomLimits, render_sample
 from omnidl.utils.io import atomic_torch_save
-
-SPLITS = {"train": 0, "val": 1, "test": 2}
-
-
-def sample_seeds(seed: int, split: str, index: int, attempt: int = 0) -> tuple[int, int]:
-    """``(room_seed, camera_seed)`` of one sample (deterministic, disjoint across splits)."""
-    if split not in SPLITS:
-        raise ValueError(f"split must be one of {sorted(SPLITS)}, got {split!r}")
-    ss = np.random.SeedSequence([int(seed), SPLITS[split], int(index), int(attempt)])
-    a, b = ss.generate_state(2)
-    return int(a), int(b)
-
-
-def render_sample(camera, seed: int, split: str, index: int, rotation: Any = "upright", max_tilt_deg: float = 30.0,
-                  manhattan_ratio: float = 0.7, furniture: bool = True, layout: bool = True,
-                  limits: RoomLimits = RoomLimits(), shadows: bool = False, dtype=torch.float32) -> dict:
-    """Render sample ``index`` of ``split`` (a new room is drawn if the camera rig fits nowhere)."""
-    last_error = None
-    for attempt in range(20):
-        room_seed, cam_seed = sample_seeds(seed, split, index, attempt)
-        scene = sample_room(room_seed, limits=limits, manhattan_ratio=manhattan_ratio, furniture=furniture)
-        try:
-            pose = place_camera(scene, camera, cam_seed, rotation=rotation, max_tilt_deg=max_tilt_deg)
-        except (RuntimeError, ValueError) as exc:
-            last_error = exc
-            continue
-        out = render(scene, camera, pose, layout=layout, dtype=dtype, shadows=shadows)
-        out["meta"].update({"seed": int(seed), "split": split, "index": int(index), "attempt": attempt})
-        return out
-    raise RuntimeError(f"sample {split}/{index}: no room fits the camera rig ({last_error})")
 
 
 class SyntheticCameraDataset(Dataset):

@@ -125,14 +125,12 @@ def build_viz(cfg: DictConfig):
 
 
 def build_camera(cfg: DictConfig, width: int | None = None, height: int | None = None):
-    """The configured camera (``omnidl.cameras.build``), else a full equirectangular camera of the image size."""
-    from omnidl.cameras import Equirectangular, build
+    """The configured camera (:func:`omnidl.cameras.resolve_camera`, resized to ``width x height``), else a full
+    equirectangular camera of the image size."""
+    from omnidl.cameras import Equirectangular, resolve_camera
     node = cfg.get("camera")
     if not _is_empty(node):
-        cam = build(OmegaConf.to_container(node, resolve=True))
-        if width is not None and (cam.width, cam.height) != (width, height):
-            cam = cam.resized(width, height)
-        return cam
+        return resolve_camera(node, width, height)
     if width is None:
         raise ValueError("no camera configured and no image size to default to")
     return Equirectangular(width=width, height=height)

@@ -14,7 +14,7 @@ Widths at ``width=1`` (the thesis / public model, ResNet-50): encoder 256, 512, 
 decoder 2048, 1024, 512, 256, 64, 16, heads 128. Other widths scale all of these; a 1x1 lateral
 convolution adapts the backbone's channels where they differ (e.g. ResNet-18 at ``width=0.25`` needs none).
 
-Ablation codes of §4.5.1: ``spectral=True/False`` ("F"/"X"), ``conv="std"/"equi"`` ("Std"/"Equi":
+Ablation codes of §4.5.1: ``spectral=True/False`` ("F"/"X"), ``conv="standard"/"projected"`` ("Std"/"Equi":
 3x3 convolutions become ``omnidl.nn.ProjectedConv2d`` on an equirectangular camera, resized by the
 layer to every feature map). Input sides must be multiples of 32.
 
@@ -36,7 +36,8 @@ from torch import Tensor
 from omnidl.nn.ffc import FourierBlock
 from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_block
 from omnidl.cameras import Equirectangular
-from omnidl.nn.projected_conv import as_camera
+from omnidl.cameras.resolve import resolve_camera
+from omnidl.nn.conv_switch import conv_choice
 from omnidl.nn.wconv import ConvNormAct, WConv
 
 from ._backbone import ResNetFeatures
@@ -137,8 +138,9 @@ class FreDSNet(nn.Module):
         pretrained: local path to torchvision backbone weights; ``None``: random init.
         width: width multiplier of every FreDSNet layer (1 = thesis model).
         spectral: Fourier blocks with the spectral transform ("F") or a 3x3 conv instead ("X").
-        conv: ``"std"`` or ``"equi"`` (distortion-aware ``ProjectedConv2d`` 3x3 convolutions).
-        camera: camera for ``conv="equi"`` (``Camera`` or config mapping; default full equirect).
+        conv: ``"standard"`` or ``"projected"`` (distortion-aware ``ProjectedConv2d`` 3x3 convolutions, the
+            thesis' EquiConv); ``"std"``/``"equi"`` are deprecated aliases (:mod:`omnidl.nn.conv_switch`).
+        camera: camera for ``conv="projected"`` (``Camera`` or config mapping; default full equirect).
         equi_parts: which 3x3 convs become Equi: any of ``"fourier"`` (the Fourier blocks' spatial
             paths, thesis §4.3.1), ``"wconv"`` (the W-convs' 3x3), ``"heads"`` (branch W-convs and
             output convs), ``"backbone"`` (every k>1 conv of the ResNet, via ``convert_conv2d``).
@@ -160,15 +162,14 @@ class FreDSNet(nn.Module):
     stride = 32
 
     def __init__(self, num_classes: int = 14, backbone: str = "resnet50", pretrained: str | None = None,
-                 width: float = 1.0, spectral: bool = True, conv: str = "std", camera: Any = None,
+                 width: float = 1.0, spectral: bool = True, conv: str = "standard", camera: Any = None,
                  equi_parts: Sequence[str] = ("fourier", "wconv"), fourier_padding: str = "zeros",
                  encoder_dropout: float = 0.4, head_width: int = HEAD_WIDTH, fft_norm: str = "backward",
                  spectrum_layout: str = "width", semantic_bn_relu: bool = False,
                  outputs: Sequence[str] = ("depth", "semantic"), depth_bias_init: float = 1.0,
                  channels_last: bool = True) -> None:
         super().__init__()
-        if conv not in ("std", "equi"):
-            raise ValueError(f"FreDSNet: conv must be 'std' or 'equi', got {conv!r}")
+        conv = conv_choice(conv, "FreDSNet")
         if not width > 0:
             raise ValueError(f"FreDSNet: width must be > 0, got {width}")
         bad = set(equi_parts) - set(EQUI_PARTS) - {"backbone"}
@@ -178,7 +179,8 @@ class FreDSNet(nn.Module):
         if not outputs or set(outputs) - {"depth", "semantic"}:
             raise ValueError(f"FreDSNet: outputs must be a non-empty subset of ('depth', 'semantic'), got {outputs}")
         self.num_classes, self.outputs = int(num_classes), outputs
-        cam = as_camera(camera, default=Equirectangular(width=512, height=256)) if conv == "equi" else None
+        cam = (resolve_camera(camera, default=Equirectangular(width=512, height=256), allow_files=False)
+               if conv == "projected" else None)
         parts = set(equi_parts) if cam is not None else set()
 
         self.backbone = ResNetFeatures(backbone, pretrained=pretrained)

@@ -14,9 +14,9 @@ resolution: half the input) and the intermediate maps ``"aux_16"``, ``"aux_8"``,
 ``(B, 2, H/s, W/s)`` (channel 0 horizon, 1 VP) used by :class:`omnidl.losses.heatmap.HeatmapLoss`.
 Channel order of the public model is VP first; here the two maps are named.
 
-``conv="equi"`` (default, as the thesis: every convolution with a kernel > 1, encoder and decoder)
+``conv="projected"`` (default, as the thesis: every convolution with a kernel > 1, encoder and decoder)
 turns the convolutions into :class:`omnidl.nn.ProjectedConv2d` on an equirectangular camera via
-:func:`omnidl.nn.convert_conv2d`; ``conv="std"`` keeps standard convolutions (horizontal padding is
+:func:`omnidl.nn.convert_conv2d`; ``conv="standard"`` keeps standard convolutions (horizontal padding is
 then circular in the decoder). Decoder widths at ``width=1`` are the public model's
 (512, 256, 128, 64, 64). Input sides must be multiples of 32.
 
@@ -35,7 +35,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.cameras import Equirectangular
-from omnidl.nn.projected_conv import as_camera
+from omnidl.cameras.resolve import resolve_camera
+from omnidl.nn.conv_switch import conv_choice
 
 from ._backbone import ResNetFeatures
 from .registry import register_model
@@ -77,21 +78,22 @@ class HoLiNet(nn.Module):
         backbone: torchvision ResNet name (``resnet50`` as the thesis; ``resnet18``/``resnet34`` smaller).
         pretrained: local path of torchvision ImageNet weights for the backbone (``None``: random init).
         width: multiplier of the decoder widths (1 = public model).
-        conv: ``"equi"`` (ProjectedConv2d everywhere) or ``"std"``.
-        camera: camera of the input image for ``conv="equi"`` (``Camera`` or config; default full equirect).
+        conv: ``"projected"`` (ProjectedConv2d everywhere) or ``"standard"``; ``"equi"``/``"std"`` are
+            deprecated aliases (:mod:`omnidl.nn.conv_switch`).
+        camera: camera of the input image for ``conv="projected"`` (``Camera`` or config; default full equirect).
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, width: float = 1.0,
-                 conv: str = "equi", camera: Any = None) -> None:
+                 conv: str = "projected", camera: Any = None) -> None:
         super().__init__()
-        if conv not in ("equi", "std"):
-            raise ValueError(f"HoLiNet: conv must be 'equi' or 'std', got {conv!r}")
+        self.conv = conv  # as given (an old spelling stays visible until its alias is removed)
+        conv = conv_choice(conv, "HoLiNet")
         if width <= 0:
             raise ValueError(f"HoLiNet: width must be positive, got {width}")
         self.encoder = ResNetFeatures(backbone, pretrained=pretrained, out_indices=(0, 1, 2, 3, 4))
         c0, c1, c2, c3, c4 = self.encoder.channels
         d0, d1, d2, d3, d4 = (max(8, int(round(c * width))) for c in DECODER_WIDTHS)
-        circ = conv == "std"
+        circ = conv == "standard"
         self.dec32 = _ConvAct(c4, d0, 3, True, circ)
         self.dec16 = _ConvAct(d0 + c3, d1, 3, True, circ)
         self.out16 = _ConvAct(d1, 2, 3, False, circ)
@@ -101,10 +103,10 @@ class HoLiNet(nn.Module):
         self.out4 = _ConvAct(d3, 2, 3, False, circ)
         self.dec2 = _ConvAct(d3 + c0 + 2, d4, 5, True, circ)
         self.out2 = _ConvAct(d4, 2, 3, False, circ)
-        self.conv = conv
-        if conv == "equi":
+        if conv == "projected":
             from omnidl.nn import convert_conv2d
-            convert_conv2d(self, camera=as_camera(camera, default=Equirectangular(width=256, height=128)))
+            convert_conv2d(self, camera=resolve_camera(camera, default=Equirectangular(width=256, height=128),
+                                                       allow_files=False))
 
     def forward(self, image: Tensor) -> dict[str, Tensor]:
         """``image (B, 3, H, W)`` RGB in ``[0, 1]`` -> dict of logits (see the module docstring)."""
@@ -125,8 +127,8 @@ class HoLiNet(nn.Module):
         return {"horizon": out[:, :1], "vp": out[:, 1:], "aux_16": a16, "aux_8": a8, "aux_4": a4}
 
 
-@register_model(smoke_kwargs=dict(backbone="resnet18", width=0.125, conv="std"), smoke_size=(64, 128))
+@register_model(smoke_kwargs=dict(backbone="resnet18", width=0.125, conv="standard"), smoke_size=(64, 128))
 def holinet(**kwargs: Any) -> HoLiNet:
     """HoLiNet (thesis ch. 6): ``create_model("holinet")`` is ResNet-50 + full decoder with EquiConvs;
-    ``create_model("holinet", backbone="resnet18", width=0.25, conv="std")`` is a small CPU model."""
+    ``create_model("holinet", backbone="resnet18", width=0.25, conv="standard")`` is a small CPU model."""
     return HoLiNet(**kwargs)

@@ -1,7 +1,8 @@
 """U-Net (Ronneberger et al. 2015) for depth and/or semantic segmentation, with standard or calibrated
 convolutions (thesis ch. 7, §7.4).
 
-``conv="calibrated"`` swaps every 3×3 convolution for a :class:`omnidl.nn.ProjectedConv2d` built
+``conv="projected"`` (the calibrated convolution of the thesis; ``"calibrated"`` is a deprecated alias)
+swaps every 3×3 convolution for a :class:`omnidl.nn.ProjectedConv2d` built
 from the camera of the network's input image (:func:`omnidl.nn.convert_conv2d`). The layers keep
 the same ``Parameter`` objects, so the state-dict keys are identical: weights trained with
 ``conv="standard"`` on perspective images load unchanged into the calibrated network (the
@@ -23,17 +24,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnidl.cameras.base import Camera
-from omnidl.cameras.resolve import check_image_size
-from omnidl.cameras.resolve import resolve_camera as _resolve_camera
+from omnidl.cameras.resolve import check_image_size, resolve_camera
+from omnidl.nn.conv_switch import conv_choice
 
+from ._weights import load_weights
 from .registry import register_model
 
 TASKS = ("depth", "semantic")
-
-
-def resolve_camera(camera: Any) -> Camera | None:
-    """``None`` or any camera spec of :func:`omnidl.cameras.resolve_camera` -> camera (``None`` stays ``None``)."""
-    return _resolve_camera(camera, default=None)
 
 
 class DoubleConv(nn.Sequential):
@@ -64,8 +61,9 @@ class UNet(nn.Module):
         num_classes: semantic classes including unknown (14 for Stanford2D3DS).
         base_channels: channels of the first level (doubled at each of the ``levels`` downsamplings).
         levels: number of 2× max-pool downsamplings (the input is reduced ``2**levels`` times).
-        conv: ``"standard"`` (``nn.Conv2d``) or ``"calibrated"`` (``ProjectedConv2d`` from ``camera``).
-        camera: the camera of the input image (needed for ``"calibrated"``): a ``Camera``, a config
+        conv: ``"standard"`` (``nn.Conv2d``) or ``"projected"`` (``ProjectedConv2d`` from ``camera``, the
+            calibrated convolution); ``"calibrated"`` is a deprecated alias (:mod:`omnidl.nn.conv_switch`).
+        camera: the camera of the input image (needed for ``"projected"``): a ``Camera``, a config
             mapping, a ``configs/camera`` name, a YAML file or a KB calibration text file.
         pretrained: optional local checkpoint (omnidl checkpoint or bare state dict) to load.
         pretrained_strict: fail when the checkpoint's keys do not match exactly.
@@ -81,8 +79,7 @@ class UNet(nn.Module):
         tasks = tuple(tasks)
         if not tasks or set(tasks) - set(TASKS):
             raise ValueError(f"unet: tasks must be a non-empty subset of {TASKS}, got {tasks}")
-        if conv not in ("standard", "calibrated"):
-            raise ValueError(f"unet: conv must be 'standard' or 'calibrated', got {conv!r}")
+        given, conv = conv, conv_choice(conv, "unet")
         if levels < 1 or base_channels < 1:
             raise ValueError(f"unet: levels and base_channels must be >= 1, got {levels}, {base_channels}")
         self.tasks, self.num_classes, self.max_depth = tasks, int(num_classes), max_depth
@@ -99,30 +96,30 @@ class UNet(nn.Module):
             self.load_pretrained(pretrained, strict=pretrained_strict)
         self.conv = "standard"
         self.camera: Camera | None = None
-        if conv == "calibrated":
+        if conv == "projected":
             self.calibrate(camera, **dict(conv_kwargs or {}))
+            self.conv = given  # as given (an old spelling stays visible until its alias is removed)
 
     def load_pretrained(self, path: str | os.PathLike, strict: bool = True) -> None:
         """Load weights from a local checkpoint (nothing is downloaded)."""
-        from omnidl.engine.checkpoint import load_checkpoint, load_model_weights
         if not os.path.isfile(path):
             raise FileNotFoundError(f"unet: pretrained weights {str(path)!r} do not exist; set model.pretrained to "
                                     "a local checkpoint (e.g. the Pers baseline of the fisheye protocol) or null")
-        load_model_weights(self, load_checkpoint(path), path, strict=strict)
+        load_weights(self, path, strict=strict)
 
     def calibrate(self, camera: Any, **conv_kwargs: Any) -> "UNet":
         """Turn every 3×3 convolution into a calibrated one for ``camera`` (in place; weights kept)."""
         from omnidl.nn import convert_conv2d
         from omnidl.nn.projected_conv import ProjectedConv2d
-        cam = resolve_camera(camera)
+        cam = resolve_camera(camera, default=None)
         if cam is None:
-            raise ValueError("unet: conv='calibrated' needs the camera of the input images (model.camera: a camera "
+            raise ValueError("unet: conv='projected' needs the camera of the input images (model.camera: a camera "
                              "config, a configs/camera name or a calibration file)")
         already = [m for m in self.modules() if isinstance(m, ProjectedConv2d)]
         for m in already:  # re-calibration for another camera
             m.camera = cam
         convert_conv2d(self, cam, **conv_kwargs)
-        self.conv, self.camera = "calibrated", cam
+        self.conv, self.camera = "projected", cam
         return self
 
     def standardize(self) -> "UNet":
@@ -158,5 +155,5 @@ class UNet(nn.Module):
 
 @register_model(smoke_kwargs={"base_channels": 4, "levels": 2}, smoke_size=(32, 48))
 def unet(**kwargs: Any) -> UNet:
-    """U-Net for depth/semantic segmentation; ``conv="standard"|"calibrated"`` (see :class:`UNet`)."""
+    """U-Net for depth/semantic segmentation; ``conv="standard"|"projected"`` (see :class:`UNet`)."""
     return UNet(**kwargs)

@@ -6,8 +6,9 @@ from collections.abc import Mapping
 from torch import nn
 
 from omnidl.cameras.base import Camera
+from omnidl.cameras.resolve import resolve_camera
 
-from .projected_conv import Backend, ProjectedConv2d, as_camera
+from .projected_conv import Backend, ProjectedConv2d
 
 
 def _convertible(m: nn.Module, min_kernel: int) -> bool:
@@ -28,7 +29,7 @@ def convert_conv2d(model: nn.Module, camera: Camera | Mapping, min_kernel: int =
     The model is modified in place and returned. Every layer reads ``camera`` resized to
     its own input, so the camera is the one of the network's input image.
     """
-    camera = as_camera(camera)
+    camera = resolve_camera(camera, default=None, allow_files=False)
     if camera is None:
         raise TypeError("convert_conv2d needs a camera (an omnidl Camera or a camera config mapping), got None")
     if isinstance(model, nn.Conv2d) and _convertible(model, min_kernel):

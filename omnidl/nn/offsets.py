@@ -31,8 +31,7 @@ How the kernel is built, for an input (feature map) of size ``H x W``:
    tap points are projected at a far distance, see ``FAR``).
 5. The reference kernel is rotated rigidly so that ``r0`` goes to ``a``: ``"upright"``
    rotation (yaw about the camera ``y`` axis then pitch, so kernel rows stay along
-   latitude circles — used for panoramas, i.e. cameras that wrap horizontally and
-   equirectangular ones) or ``"axial"`` (the smallest rotation taking ``r0`` to ``a`` —
+   latitude circles — used for panoramas, ``camera.panoramic``) or ``"axial"`` (the smallest rotation taking ``r0`` to ``a`` —
    used for the others: fisheye/pinhole/catadioptric, radially symmetric).
 6. Taps are projected with ``cam`` and turned into offsets. For cameras that wrap
    horizontally the tap column is taken as the representative nearest the anchor (so
@@ -135,14 +134,6 @@ def _axial_rotation(r0: Tensor, a: Tensor) -> Tensor:
     return rot
 
 
-def _is_panorama(camera: Camera) -> bool:
-    base = camera
-    while hasattr(base, "base") and isinstance(getattr(base, "base"), Camera):
-        base = base.base
-    from omnidl.cameras.equirectangular import Equirectangular
-    return camera.wraps_horizontally or isinstance(base, Equirectangular)
-
-
 def compute_sampling(camera: Camera, in_hw: tuple[int, int], kernel_size: int | Pair, stride: int | Pair = 1,
                      padding: int | Pair = 0, dilation: int | Pair = 1, *, wrap: bool | None = None,
                      kernel: Literal["grid", "tangent"] = "grid",
@@ -158,8 +149,8 @@ def compute_sampling(camera: Camera, in_hw: tuple[int, int], kernel_size: int | 
             Without wrap, taps beyond the left/right border read zero.
         kernel: ``"grid"`` (default; exact pixel grid at the reference pixel) or ``"tangent"``
             (square lattice on the tangent plane), see the module docstring.
-        rotation: ``"upright"``, ``"axial"`` or ``"auto"`` (upright for panoramas — cameras that
-            wrap horizontally or equirectangular ones — axial otherwise).
+        rotation: ``"upright"``, ``"axial"`` or ``"auto"`` (upright for panoramas —
+            :attr:`Camera.panoramic` — axial otherwise).
         image_padding: ``(pad_right, pad_bottom)`` pixels the calibrated image was padded with
             before the network (thesis Eq. 7.3); passed to ``camera.resized``.
 
@@ -181,7 +172,7 @@ def compute_sampling(camera: Camera, in_hw: tuple[int, int], kernel_size: int | 
     if wrap and not cam.wraps_horizontally:
         raise ValueError(f"wrap=True needs a camera that covers 360° horizontally; {camera!r} does not")
     if rotation == "auto":
-        rotation = "upright" if _is_panorama(camera) else "axial"
+        rotation = "upright" if camera.panoramic else "axial"
     f64 = torch.float64
     kh, kw = k
     ti = (torch.arange(kh, dtype=f64) - kh // 2) * d[0]  # tap row displacement (pixels)

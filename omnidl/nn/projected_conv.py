@@ -8,7 +8,6 @@ module-level cache shared by every layer with the same key.
 """
 from __future__ import annotations
 
-import os
 import threading
 from typing import Literal
 
@@ -91,19 +90,6 @@ def plan_cache_info() -> dict[str, int]:
                 "plan_bytes": plan_bytes, "offset_bytes": off_bytes}
 
 
-def as_camera(camera, default: Camera | None = None) -> Camera | None:
-    """``None`` (-> ``default``), a :class:`Camera` or a camera config mapping -> camera.
-
-    :func:`omnidl.cameras.resolve_camera` for in-memory specs only: a layer never reads files or
-    config names (resolve those first).
-    """
-    if isinstance(camera, (str, os.PathLike)):
-        raise TypeError(f"camera must be an omnidl Camera, a camera config mapping or None, got "
-                        f"{type(camera).__name__} {str(camera)!r}; resolve names and files with "
-                        "omnidl.cameras.resolve_camera first")
-    return resolve_camera(camera, default=default)
-
-
 def _pair(v) -> Pair:
     return (v, v) if isinstance(v, int) else (int(v[0]), int(v[1]))
 
@@ -161,7 +147,7 @@ class ProjectedConv2d(nn.Conv2d):
 
     @camera.setter
     def camera(self, camera: Camera | None) -> None:
-        camera = as_camera(camera)
+        camera = resolve_camera(camera, default=None, allow_files=False)
         if camera is not None:
             if self.padding_mode != "zeros":
                 raise ValueError(f"ProjectedConv2d with a camera needs padding_mode='zeros' (got "

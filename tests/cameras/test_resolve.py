@@ -121,25 +121,31 @@ def test_errors_name_what_was_given_and_what_is_accepted(tmp_path):
         resolve_camera({"width": 8, "height": 4})
 
 
-def test_old_names_are_the_same_resolver(calib_file, f195):
-    from omnidl.data.fisheye import load_camera
+def test_every_consumer_uses_the_one_resolver(calib_file, f195):
+    """The consumers' former adapters (``data.fisheye.load_camera``, ``models.unet.resolve_camera``,
+    ``nn.projected_conv.as_camera``, ``synth.cameras``) are options of :func:`resolve_camera`."""
+    from omnidl.data import synthetic
     from omnidl.models import unet
-    from omnidl.nn.projected_conv import as_camera
-    from omnidl.synth import cameras as synth_cameras
-    assert synth_cameras.resolve_camera is resolve_camera and synth_cameras.CAMERA_CONFIG_DIR == CAMERA_CONFIG_DIR
-    assert unet.check_image_size is check_image_size
-    assert unet.resolve_camera(None) is None and unet.resolve_camera(str(calib_file)) == f195
-    assert load_camera(calib_file) == f195
-    with pytest.raises(ValueError, match="disagrees"):                  # load_camera checks the aspect by default
-        load_camera(calib_file, 64, 64)
-    assert load_camera(calib_file, 64, 64, check_aspect=False).width == 64
+    from omnidl.nn import ProjectedConv2d
+    assert synthetic.resolve_camera is resolve_camera
+    assert unet.check_image_size is check_image_size and unet.resolve_camera is resolve_camera
+    assert resolve_camera(None, default=None) is None and resolve_camera(str(calib_file), default=None) == f195
+    assert resolve_camera(calib_file, check_aspect=True) == f195
+    with pytest.raises(ValueError, match="disagrees"):                  # datasets check the aspect
+        resolve_camera(calib_file, 64, 64, check_aspect=True)
+    assert resolve_camera(calib_file, 64, 64, check_aspect=False).width == 64
     pano = Equirectangular(width=64, height=32)
-    assert as_camera(None) is None and as_camera(None, default=pano) is pano
-    assert as_camera(OmegaConf.create({"type": "equirect", "width": 64, "height": 32})) == pano
+    in_memory = dict(allow_files=False)
+    assert resolve_camera(None, default=None, **in_memory) is None
+    assert resolve_camera(None, default=pano, **in_memory) is pano
+    assert resolve_camera(OmegaConf.create({"type": "equirect", "width": 64, "height": 32}), **in_memory) == pano
     with pytest.raises(TypeError, match="resolve_camera"):                 # layers take in-memory specs only
-        as_camera("equirect")
+        resolve_camera("equirect", **in_memory)
+    with pytest.raises(TypeError, match="resolve_camera"):
+        ProjectedConv2d(2, 2, 3, camera="equirect")
 
 
+@pytest.mark.slow
 def test_import_pulls_in_no_higher_package():
     code = ("import sys, omnidl.cameras; bad = [m for m in sys.modules if m.split('.')[:2] in "
             "[['omnidl', p] for p in ('nn', 'models', 'synth', 'data')] or m == 'omegaconf']; print(bad)")

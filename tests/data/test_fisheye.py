@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 import torch
 
+from omnidl.cameras import resolve_camera
 from omnidl.cameras.kannala_brandt import KannalaBrandt
-from omnidl.data.fisheye import (FisheyeFromPanoramas, PerspectiveFromPanoramas, load_camera, principal_point,
+from omnidl.data.fisheye import (FisheyeFromPanoramas, PerspectiveFromPanoramas, principal_point,
                                  radius_map)
 from omnidl.geometry import euler_to_matrix
 
 _spec = importlib.util.spec_from_file_location(
-    "fisheye_panorama_standin", Path(__file__).resolve().parents[1] / "fisheye" / "panorama_standin.py")
+    "fisheye_panorama_standin", Path(__file__).resolve().parent / "panorama_standin.py")
 standin = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(standin)
 
@@ -39,10 +40,10 @@ def write_calib(path, values):
 
 def test_reference_calibration_file_loads_directly(tmp_path):
     path = write_calib(tmp_path / "fisheye_calibration_FOV195.txt", F195_VALUES)
-    cam = load_camera(str(path))
-    ref = load_camera("kb_f195")
+    cam = resolve_camera(str(path))
+    ref = resolve_camera("kb_f195")
     assert cam == ref
-    small = load_camera(str(path), 72, 64)
+    small = resolve_camera(str(path), 72, 64, check_aspect=True)
     assert (small.width, small.height) == (72, 64)
 
 
@@ -57,7 +58,7 @@ def test_calibration_errors_are_clear(tmp_path, panos):
     with pytest.raises(ValueError, match="64x64.*disagrees with the calibration.*1080x960"):
         FisheyeFromPanoramas(str(good), width=64, height=64, panoramas=panos)
     with pytest.raises(FileNotFoundError, match="missing.txt"):
-        load_camera(str(tmp_path / "missing.txt"))
+        resolve_camera(str(tmp_path / "missing.txt"))
 
 
 def test_fisheye_views_match_the_closed_form_scene(panos):
@@ -115,12 +116,12 @@ def test_perspective_crops(panos):
 
 
 def test_radius_map_in_calibrated_pixels():
-    cam = load_camera("kb_f195", 72, 64)
+    cam = resolve_camera("kb_f195", 72, 64, check_aspect=True)
     r = radius_map(cam).double()
     uv = cam.pixel_grid(torch.float64)
     expect = torch.hypot(uv[..., 0] * 15 - 540, uv[..., 1] * 15 - 480)
     torch.testing.assert_close(r, expect, atol=1e-3, rtol=0)
-    assert principal_point(load_camera("kb_f195")) == pytest.approx((540.0, 480.0))
+    assert principal_point(resolve_camera("kb_f195")) == pytest.approx((540.0, 480.0))
 
 
 def test_panorama_shape_checked():

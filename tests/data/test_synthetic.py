@@ -4,7 +4,8 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from omnidl.data.synthetic import SyntheticCameraDataset, SyntheticPanoramaDataset, sample_seeds
+from omnidl.data.synthetic import SyntheticCameraDataset, SyntheticPanoramaDataset
+from omnidl.synth import sample_seeds
 
 
 @pytest.fixture(autouse=True)

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from omnidl.cameras import Equirectangular
 from omnidl.models import create_model
 from omnidl.models._backbone import ResNetFeatures
-from omnidl.models.convert_fredsnet import (convert_key, convert_state_dict, load_official_checkpoint,
+from omnidl.apps.convert_fredsnet import (convert_key, convert_state_dict, load_official_checkpoint,
                                             official_state_dict_shapes)
 from omnidl.models.fredsnet import FreDSNet, count_parameters
 from omnidl.nn import FourierBlock, ProjectedConv2d
@@ -160,6 +160,7 @@ def test_official_layout_parameter_count():
     assert n == REFERENCE_PARAMS
 
 
+@pytest.mark.slow
 def test_convert_official_state_dict_loads_strictly(full_model, tmp_path, monkeypatch):
     official = _random_official_state_dict()
     converted = convert_state_dict(official)

@@ -75,6 +75,7 @@ def _official_from(model: HorizonNet) -> dict:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rnn", [True, False])
 def test_official_checkpoint_converter(rnn, tmp_path):
     torch.manual_seed(0)

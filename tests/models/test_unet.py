@@ -119,7 +119,7 @@ def test_hydra_configs_compose_and_build(tmp_path):
         cfg = compose("train", overrides=["model=unet_small", "experiment=fisheye_f195_calib",
                                           f"paths.output_dir={tmp_path}"])
         model = instantiate(cfg.model, _convert_="all")
-        assert model.conv == "calibrated" and model.camera.width == 1080
+        assert model.conv == "projected" and model.camera.width == 1080
         ds = instantiate(cfg.data.test, _convert_="all")
         assert (ds.camera.width, ds.camera.height) == (72, 64)
         loss = instantiate(cfg.loss, _convert_="all")

@@ -1,4 +1,5 @@
-"""The §7.4 protocol end to end on a tiny stand-in (closed-form panoramas, 36x32 images, a few steps)."""
+"""The §7.4 protocol (``python -m omnidl.apps.fisheye.protocol``) end to end on a tiny stand-in (closed-form
+panoramas, 36x32 images, a few steps), its stages trained by omnidl.engine.train."""
 import csv
 import json
 from pathlib import Path
@@ -6,11 +7,11 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from omnidl.fisheye import protocol
+from omnidl.apps.fisheye import protocol
 
-from .panorama_standin import StandInPanoramas
+from tests.data.panorama_standin import StandInPanoramas
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "fisheye" / "small_cpu.yaml"
+CONFIG = Path(__file__).resolve().parents[3] / "configs" / "fisheye" / "small_cpu.yaml"
 
 
 def tiny_cfg():
@@ -19,6 +20,7 @@ def tiny_cfg():
         "train.steps=2", "train.batch_size=2", "finetune.steps=1", "eval.batch_size=4", "radial.num_bins=4", "plots=false"])
 
 
+@pytest.mark.slow
 def test_protocol_end_to_end(tmp_path):
     pan = {"train": StandInPanoramas(2, 64, 32), "test": StandInPanoramas(1, 64, 32)}
     res = protocol.run(tiny_cfg(), tmp_path, panoramas=pan)

@@ -14,7 +14,7 @@ is not detached (this changes gradients, not the forward pass).
 
 Command line::
 
-    python -m omnidl.models.convert_fredsnet FreDSNet_weights.pth fredsnet_omnidl.pth
+    python -m omnidl.apps.convert_fredsnet FreDSNet_weights.pth fredsnet_omnidl.pth
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from ._backbone import build_resnet
+from omnidl.models._backbone import build_resnet
 
 FEATURES = (256, 512, 1024, 2048)
 LATENT = 1024
@@ -216,7 +216,7 @@ def load_official_checkpoint(path: str, map_location: str | torch.device = "cpu"
 
     ``weights_only=False`` un-pickles arbitrary objects: only for files you trust.
     """
-    from .fredsnet import FreDSNet
+    from omnidl.models.fredsnet import FreDSNet
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=weights_only)
     except FileNotFoundError:

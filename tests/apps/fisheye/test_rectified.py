@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-from omnidl.data.fisheye import load_camera
-from omnidl.fisheye.rectified import RectifiedModel, rectification_report
+from omnidl.cameras import resolve_camera
+from omnidl.apps.fisheye.rectified import RectifiedModel, rectification_report
 
 
 class RedAsDepth(torch.nn.Module):
@@ -22,7 +22,7 @@ def smooth_image(cam):
 
 @pytest.mark.parametrize("name", ["kb_f165", "kb_f195"])
 def test_round_trip_and_coverage(name):
-    cam = load_camera(name, 72, 64)
+    cam = resolve_camera(name, 72, 64, check_aspect=True)
     rect = RectifiedModel(RedAsDepth(), cam, fov_deg=150)
     x = smooth_image(cam)
     out = rect(x)
@@ -50,6 +50,6 @@ def test_round_trip_and_coverage(name):
 
 
 def test_size_mismatch_is_an_error():
-    cam = load_camera("kb_f165", 36, 32)
+    cam = resolve_camera("kb_f165", 36, 32, check_aspect=True)
     with pytest.raises(ValueError, match="disagrees with the fisheye calibration"):
         RectifiedModel(RedAsDepth(), cam)(torch.rand(1, 3, 32, 32))

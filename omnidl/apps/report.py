@@ -1,4 +1,4 @@
-"""Collect a sweep into a results table: ``python -m omnidl.report multirun/<dir> [--out DIR]``.
+"""Collect a sweep into a results table: ``python -m omnidl.apps.report multirun/<dir> [--out DIR]``.
 
 Every job folder below ``<dir>`` that holds a ``metrics.json`` becomes one row. The row is named by the
 job's experiment code (``name`` in its ``.hydra/config.yaml``, set by the experiment configs, e.g. ``F-Std-CE-B``), else by its
@@ -178,7 +178,7 @@ def write_report(root: str | Path, out: str | Path | None = None, all_metrics: b
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m omnidl.report", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m omnidl.apps.report", description=__doc__.split("\n\n")[0])
     ap.add_argument("sweep", help="a multirun folder (or any folder with job sub-folders holding metrics.json)")
     ap.add_argument("--out", help="where to write results.md/results.csv (default: the sweep folder)")
     ap.add_argument("--all", action="store_true", help="a column for every scalar metric, not only the table ones")

@@ -1,7 +1,7 @@
-"""python -m omnidl.report collects a sweep into a table with one row per job."""
+"""python -m omnidl.apps.report collects a sweep into a table with one row per job."""
 import json
 
-from omnidl.report import main, write_report
+from omnidl.apps.report import main, write_report
 
 
 def _job(root, i, code, metrics):

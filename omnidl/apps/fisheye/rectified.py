@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from omnidl.cameras.base import Camera
+from omnidl.cameras import Camera, resolve_camera
 from omnidl.geometry import perspective_camera, rectification_coverage, reproject
 
 
@@ -65,6 +65,14 @@ class RectifiedModel(nn.Module):
         if covered is not None:
             result["rectified"] = covered
         return result
+
+
+def rectified_model(model: nn.Module, camera: Any, width: int, height: int, fov_deg: float | None = 150.0
+                    ) -> RectifiedModel:
+    """:class:`RectifiedModel` for config files: ``camera`` is any :func:`omnidl.cameras.resolve_camera` spec,
+    resized to the ``width x height`` input images (e.g. ``{_target_: ...rectified_model, model: <model node>,
+    camera: ${camera}, width: ${data.width}, height: ${data.height}}``)."""
+    return RectifiedModel(model, resolve_camera(camera, width, height, check_aspect=True), fov_deg=fov_deg)
 
 
 def rectification_report(fisheye: Camera, pinhole: Camera | None = None, fov_deg: float | None = 150.0

@@ -7,10 +7,16 @@ import pytest
 import torch
 
 from omnidl.cameras.kannala_brandt import KannalaBrandt
-from omnidl.data.fisheye import load_camera
+from omnidl.cameras import resolve_camera
 from omnidl.nn.offsets import compute_sampling
 
 from .recipe_reference import F195, kb_inv, recipe_offsets, scaled_calibration
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(single_thread):
+    """Small tensors: one intra-op thread (see tests/conftest.py)."""
+    yield
 
 
 @pytest.mark.parametrize("u, v, w, h, off_x0, off_y0", [
@@ -130,7 +136,7 @@ def test_equidistant_principal_point_tangent_kernel_closed_form():
 
 
 def test_calibrated_offsets_grow_with_radius_on_f195():
-    cam = load_camera("kb_f195").resized(135, 120)
+    cam = resolve_camera("kb_f195").resized(135, 120)
     off, mask = compute_sampling(cam, (120, 135), 3, 3, 1)     # anchors at multiples of 3
     ho, wo = off.shape[-2:]
     mag = off[0].reshape(9, 2, ho, wo).norm(dim=1).amax(0)

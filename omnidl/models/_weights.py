@@ -1,0 +1,45 @@
+"""Load a model's weights from a local file (``model.pretrained=PATH`` options of the models).
+
+Accepted files (``torch.load``; nothing is downloaded): an omnidl training checkpoint
+(``{"model": state_dict, ...}``, :mod:`omnidl.engine.checkpoint`), ``{"state_dict": state_dict}`` or a
+bare state dict. ``module.`` prefixes (DistributedDataParallel) are stripped. The files are un-pickled
+with ``weights_only=False`` (training checkpoints hold RNG states): only load files you trust.
+"""
+from __future__ import annotations
+
+import os
+
+import torch
+from torch import Tensor, nn
+
+
+def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
+    """The model state dict stored in ``path`` (see the module docstring), with clear errors naming the file."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"weights file {path!r} does not exist")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 (truncated or not a torch file)
+        raise RuntimeError(f"could not read weights file {path!r}: {e}") from e
+    if isinstance(obj, dict) and isinstance(obj.get("model"), dict):
+        sd = obj["model"]
+    elif isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
+        sd = obj["state_dict"]
+    elif isinstance(obj, dict) and obj and all(isinstance(v, Tensor) for v in obj.values()):
+        sd = obj
+    else:
+        raise RuntimeError(f"weights file {path!r}: expected a checkpoint with 'model' or 'state_dict', or a bare "
+                           f"state dict; got {type(obj).__name__}")
+    return {k.removeprefix("module."): v for k, v in sd.items()}
+
+
+def load_weights(model: nn.Module, path: str | os.PathLike, strict: bool = True) -> None:
+    """Load the weights of ``path`` into ``model``; with ``strict`` an error lists missing/unexpected keys
+    (a shape mismatch is ``load_state_dict``'s own ``size mismatch`` error)."""
+    missing, unexpected = model.load_state_dict(read_state_dict(path), strict=False)
+    if strict and (missing or unexpected):
+        raise RuntimeError(f"weights {os.fspath(path)!r} do not fit the model ({type(model).__name__}): "
+                           f"missing keys {missing[:8]}{'...' if len(missing) > 8 else ''}, "
+                           f"unexpected keys {unexpected[:8]}{'...' if len(unexpected) > 8 else ''}; "
+                           "were they trained with another model config?")

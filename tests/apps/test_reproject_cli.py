@@ -1,0 +1,71 @@
+"""The reproject CLI (``python -m omnidl.apps.reproject``): output matches the library call, clear errors for
+bad inputs."""
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from tests.geometry.geom_helpers import render
+from omnidl.cameras import Equirectangular, build
+from omnidl.geometry import euler_to_matrix, reproject
+from omnidl.apps.reproject import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def write_inputs(tmp_path):
+    pano = render(Equirectangular(width=64, height=32))[0, 0].numpy()
+    img = np.stack([pano, 255 - pano, 0.5 * pano], -1).round().astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "pano.png"), img)
+    (tmp_path / "pin.yaml").write_text("_target_: omnidl.cameras.build\ntype: pinhole\nwidth: 20\nheight: 16\n"
+                                       "fx: 10.0\nfy: 10.0\ncx: 10.0\ncy: 8.0\n")
+    return img
+
+
+def test_cli_matches_library(tmp_path, capsys):
+    img = write_inputs(tmp_path)
+    rc = main(["--src", str(tmp_path / "pano.png"), "--dst-camera", str(tmp_path / "pin.yaml"),
+               "--out", str(tmp_path / "out.png"), "--rotation", "5,20,-30", "--mask-out", str(tmp_path / "m.png")])
+    assert rc == 0 and "wrote" in capsys.readouterr().out
+    out = cv2.imread(str(tmp_path / "out.png"), cv2.IMREAD_UNCHANGED)
+    assert out.shape == (16, 20, 3) and out.dtype == np.uint8
+    cam = build(type="pinhole", width=20, height=16, fx=10.0, fy=10.0, cx=10.0, cy=8.0)
+    R = euler_to_matrix(*[torch.tensor(np.radians(v), dtype=torch.float64) for v in (5, 20, -30)])
+    ref, _ = reproject(torch.from_numpy(img).permute(2, 0, 1)[None].float(), Equirectangular(width=64, height=32),
+                       cam, R)
+    ref = ref[0].permute(1, 2, 0).round().clamp(0, 255).numpy().astype(np.uint8)
+    assert np.abs(out.astype(int) - ref.astype(int)).max() <= 1
+    assert (cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED) == 255).all()
+
+
+def test_cli_nearest_and_module_entry_point(tmp_path):
+    write_inputs(tmp_path)
+    res = subprocess.run([sys.executable, "-m", "omnidl.apps.reproject", "--src", str(tmp_path / "pano.png"),
+                          "--dst-camera", str(tmp_path / "pin.yaml"), "--out", str(tmp_path / "o.png"),
+                          "--mode", "nearest"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert cv2.imread(str(tmp_path / "o.png")).shape == (16, 20, 3)
+
+
+def test_cli_errors(tmp_path, capsys):
+    write_inputs(tmp_path)
+    base = ["--dst-camera", str(tmp_path / "pin.yaml"), "--out", str(tmp_path / "o.png")]
+    assert main(["--src", str(tmp_path / "missing.png")] + base) == 2
+    assert "missing.png" in capsys.readouterr().err
+    (tmp_path / "bad.yaml").write_text("type: pinhole\nwidth: 8\nheight: 8\nfocal: 3\n")
+    assert main(["--src", str(tmp_path / "pano.png"), "--dst-camera", str(tmp_path / "bad.yaml"),
+                 "--out", str(tmp_path / "o.png")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.yaml" in err and "focal" in err
+    (tmp_path / "broken.yaml").write_text("type: [unclosed\n")
+    assert main(["--src", str(tmp_path / "pano.png"), "--dst-camera", str(tmp_path / "broken.yaml"),
+                 "--out", str(tmp_path / "o.png")]) == 2
+    assert "broken.yaml" in capsys.readouterr().err
+    assert main(["--src", str(tmp_path / "pano.png"), "--rotation", "1,2"] + base) == 2
+    assert "roll,pitch,yaw" in capsys.readouterr().err
+    assert main(["--src", str(tmp_path / "pano.png"), "--src-camera", str(tmp_path / "pin.yaml")] + base) == 2
+    assert "64x32" in capsys.readouterr().err
+    assert not (tmp_path / "o.png").exists()
