@@ -16,7 +16,6 @@ figure (it is what an idle core gives); the wall clock and the load average are 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time

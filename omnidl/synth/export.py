@@ -22,7 +22,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
+from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.classes import CLASS_COLORS, CLASS_NAMES
 from omnidl.utils.io import atomic_imwrite, atomic_write_bytes, atomic_write_text
 
@@ -116,6 +118,17 @@ def label_cor_lines(sample: dict, layout_order: bool) -> str:
 
 
 # -- writers --------------------------------------------------------------------------------------------
+def _label_angles(boundary: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The dataset's ``label_ang`` angles of boundary rows ``(2, W)``: ``theta (W,)`` (its azimuth, the negated
+    omnidl longitude of each column centre) and ``elev (2, W)`` (the latitude of each boundary row), asked of
+    the equirect camera of the image."""
+    cam = Equirectangular(width=width, height=height)
+    u = torch.arange(width, dtype=torch.float64) + 0.5
+    uv = torch.stack([u.expand(2, width), torch.as_tensor(boundary, dtype=torch.float64)], -1)
+    lon, lat = cam.uv_to_lonlat(uv)
+    return -lon[0].numpy(), lat.numpy()
+
+
 def write_sample(out: Path, fmt: str, name: str, sample: dict, area: str = "area_1") -> None:
     """Write one rendered sample (the dict of :func:`omnidl.synth.render`) in format ``fmt``."""
     files = expected_files(out, fmt, name, area)
@@ -129,9 +142,8 @@ def write_sample(out: Path, fmt: str, name: str, sample: dict, area: str = "area
         gt = np.concatenate([cw[:, 0], cw[:, 1]]) @ A.T
         cam = (A @ np.asarray(sample["pose"], np.float64)[:3, 3])[None]
         H, W = depth.shape
-        theta = np.pi - 2 * np.pi * (np.arange(W) + 0.5) / W
-        b = np.asarray(sample["boundary"], np.float64)
-        elev = np.where(np.asarray(sample["boundary_valid"]), np.pi / 2 - np.pi * b / H, 0.0)  # 0 = not seen
+        theta, elev = _label_angles(np.asarray(sample["boundary"], np.float64), W, H)
+        elev = np.where(np.asarray(sample["boundary_valid"]), elev, 0.0)  # 0 = not seen
         _write_png_rgb(files[1], encode_depth_24bit(np.where(np.asarray(sample["valid"]), depth, 0.0)))
         atomic_imwrite(files[2], (np.asarray(sample["edges"][0]) * 255).astype(np.uint8))
         _write_npy(files[3], gt)

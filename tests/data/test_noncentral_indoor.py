@@ -1,6 +1,5 @@
 """NonCentralIndoorDataset loader on files written by the data engine's writer (frame adapter, depth, labels)
 and the HorizonNet label_cor format."""
-import math
 
 import numpy as np
 import pytest

@@ -29,7 +29,6 @@ def test_rotate_then_inverse(gen):
 
 
 def test_yaw_is_a_column_shift():
-    cam = Equirectangular(width=64, height=32)
     img = torch.rand(1, 3, 32, 64, dtype=D)
     z = torch.zeros((), dtype=D)
     R = euler_to_matrix(z, z, torch.tensor(2 * math.pi * 5 / 64, dtype=D))  # 5 columns
@@ -41,7 +40,6 @@ def test_yaw_is_a_column_shift():
 
 
 def test_labels_keep_their_values(gen):
-    cam = Equirectangular(width=64, height=32)
     lab = torch.randint(1, 13, (1, 1, 32, 64), generator=gen)
     R = random_rotation(1, generator=gen, dtype=D)[0]
     out, valid = rotate_panorama(lab, R, mode="nearest")

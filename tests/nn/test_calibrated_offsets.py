@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from omnidl.cameras.kannala_brandt import KannalaBrandt
 from omnidl.cameras import resolve_camera

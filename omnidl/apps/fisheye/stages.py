@@ -22,7 +22,7 @@ from torch.utils.data import DataLoader
 
 from omnidl.data.collate import collate_samples
 from omnidl.engine import register_configs, train
-from omnidl.engine.build import MetricCollection, build_dataset, build_model
+from omnidl.engine.build import MetricCollection, build_model
 from omnidl.engine.checkpoint import load_checkpoint, save_checkpoint
 from omnidl.engine.validation import run_validation
 from omnidl.metrics.depth import DEPTH_METRICS, DepthMetrics

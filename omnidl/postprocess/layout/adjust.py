@@ -19,11 +19,12 @@ within ``+-max_extent``) with an analytic Jacobian.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
+
+from .corners import wrap_angle
 
 
 @dataclass
@@ -123,7 +124,7 @@ def residuals_and_jacobian(x: np.ndarray, P: AdjustProblem, want_jac: bool = Tru
         idx = np.flatnonzero(has)
         Cm = C[idx]
         az = np.arctan2(Cm[:, 0], Cm[:, 1])
-        diff = np.mod(az - P.corner_az[idx] + math.pi, 2 * math.pi) - math.pi
+        diff = wrap_angle(az - P.corner_az[idx])
         w = P.corner_w[idx] / P.pix_az
         blocks.append(w * diff)
         if want_jac:

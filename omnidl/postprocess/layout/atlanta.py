@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .assemble import assemble, corner_points, far_from_ray
-from .corners import line_intersection
+from .corners import line_intersection, wrap_angle
 from .rays import ColumnRays
 from .solvers import atlanta_rows, solve_atlanta
 from .walls import keep_walls, merge_walls, ray_arrays, topview_wall_line
@@ -57,7 +57,7 @@ def atlanta_layout(rays: ColumnRays, corners_u: np.ndarray, theta: np.ndarray, g
         pairs = []
         for k in range(n):
             j = (k + 1) % n
-            dth = abs((theta[k] - theta[j] + math.pi) % (2 * math.pi) - math.pi)
+            dth = abs(wrap_angle(theta[k] - theta[j]))
             if dth < math.radians(opt.merge_angle_deg) and abs(d[k] - d[j]) < opt.merge_distance:
                 pairs.append(k)
         if not pairs or n <= 3:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...geometry.polygon import ray_line_range
+from .corners import wrap_angle
 
 
 @dataclass
@@ -124,7 +125,7 @@ def _consistent(W: np.ndarray):
     flip = dd < 0
     theta = np.where(flip, theta + math.pi, theta)
     dd = np.abs(dd)
-    theta = np.mod(theta + math.pi, 2 * math.pi) - math.pi
+    theta = wrap_angle(theta)
     return theta, dd, h_c, h_f, n
 
 
@@ -364,7 +365,7 @@ def solve_walls_central(dir_c: np.ndarray, dir_f: np.ndarray, w_c=None, w_f=None
     h_c, h_f, d = h_c * s, h_f * s, d * s
     theta = np.arctan2(u[:, 1], u[:, 0])
     theta = np.where(d < 0, theta + math.pi, theta)
-    theta = np.mod(theta + math.pi, 2 * math.pi) - math.pi
+    theta = wrap_angle(theta)
     d = np.abs(d)
     Wc = wall_vector(theta, d, h_c, h_f)
     ok = np.isfinite(h_c) & (h_c > 0) & (h_f < 0) & (nu > 1e-12)

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from ...geometry.polygon import ray_line_range
+from .corners import wrap_angle
 from .rays import ColumnRays
 
 
@@ -105,7 +106,7 @@ def topview_wall_line(rays: ColumnRays, c: np.ndarray, h_c: float, h_f: float) -
     d = float(n @ mu)
     if d < 0:
         th, d = th + math.pi, -d
-    return (th + math.pi) % (2 * math.pi) - math.pi, d
+    return float(wrap_angle(th)), d
 
 
 def ray_arrays(rays: ColumnRays, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

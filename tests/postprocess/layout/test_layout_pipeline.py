@@ -1,5 +1,4 @@
 """Full pipeline on exact synthetic rooms (small acceptance study), occlusions and degenerate input."""
-import math
 
 import numpy as np
 import pytest

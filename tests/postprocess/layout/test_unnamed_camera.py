@@ -9,7 +9,6 @@ hook recovers the room from those targets, with no layout code knowing the camer
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import pytest
 import torch
 
