@@ -185,7 +185,7 @@ def sample_grid(image: Tensor, grid: WarpGrid, mode: str = "bilinear") -> tuple[
         src = image
         if grid.wrap:  # one wrapped column on each side: interpolation across the seam
             src = torch.cat([image[..., -1:], image, image[..., :1]], dim=-1)
-            lo, hi = torch.aminmax(u)
+            lo, hi = torch.aminmax(u.detach())
             if float(lo) < 0 or float(hi) > w:  # camera projections already lie in [0, W]
                 u = torch.remainder(u, w)
             u = u + 1.0

@@ -50,7 +50,7 @@ def test_load_holinet_from_an_engine_checkpoint(tmp_path):
     from omnidl.models import create_model
     from omnidl.apps.gyroscope import load_holinet
     from omnidl.postprocess.gyroscope.pipeline import model_horizon_fn
-    kw = dict(backbone="resnet18", width=0.125, conv="std")
+    kw = dict(backbone="resnet18", width=0.125, conv="standard")
     m = create_model("holinet", **kw)
     cfg = {"camera": {"type": "equirect", "width": 64, "height": 32},
            "model": {"_target_": "omnidl.models.create_model", "name": "holinet", **kw},

@@ -78,7 +78,7 @@ def test_horizontal_wrap_in_heads():
 
 def test_equi_variant_uses_projected_convs():
     cam = Equirectangular(width=128, height=64)
-    m = FreDSNet(**SMALL, conv="equi", camera=cam, equi_parts=("fourier", "wconv"))
+    m = FreDSNet(**SMALL, conv="projected", camera=cam, equi_parts=("fourier", "wconv"))
     fb = m.encoder[0].fourier.ffc
     assert isinstance(fb.conv_l2l, ProjectedConv2d) and fb.conv_l2l.camera == cam
     assert isinstance(m.encoder[0].conv.conv.conv, ProjectedConv2d)
@@ -86,7 +86,7 @@ def test_equi_variant_uses_projected_convs():
     std = FreDSNet(**SMALL)
     assert count_parameters(m) == count_parameters(std)       # same weights, only the sampling differs
     with pytest.raises(ValueError, match="equi_parts"):
-        FreDSNet(**SMALL, conv="equi", equi_parts=("everything",))
+        FreDSNet(**SMALL, conv="projected", equi_parts=("everything",))
 
 
 def test_equi_fourier_block_forward_backward():

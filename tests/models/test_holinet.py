@@ -5,7 +5,7 @@ from omnidl.models import create_model
 from omnidl.nn import ProjectedConv2d
 
 
-@pytest.mark.parametrize("conv", ["std", "equi"])
+@pytest.mark.parametrize("conv", ["standard", "projected"])
 def test_output_shapes_and_names(conv):
     torch.manual_seed(0)
     m = create_model("holinet", backbone="resnet18", width=0.125, conv=conv).eval()
@@ -17,11 +17,11 @@ def test_output_shapes_and_names(conv):
     assert all(torch.isfinite(v).all() for v in out.values())
     n_proj = sum(isinstance(x, ProjectedConv2d) and x.camera is not None for x in m.modules())
     big = [x for x in m.modules() if isinstance(x, torch.nn.Conv2d) and max(x.kernel_size) > 1]
-    assert n_proj == (len(big) if conv == "equi" else 0)
+    assert n_proj == (len(big) if conv == "projected" else 0)
 
 
 def test_bad_inputs_and_options():
-    m = create_model("holinet", backbone="resnet18", width=0.125, conv="std")
+    m = create_model("holinet", backbone="resnet18", width=0.125, conv="standard")
     with pytest.raises(ValueError, match="multiples of 32"):
         m(torch.rand(1, 3, 40, 80))
     with pytest.raises(ValueError, match="conv"):

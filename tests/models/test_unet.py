@@ -37,7 +37,7 @@ def test_calibrated_same_state_dict_and_switch_back():
     torch.manual_seed(0)
     std = UNet(base_channels=4, levels=2).eval()
     cam = small_fisheye()
-    cal = UNet(base_channels=4, levels=2, conv="calibrated", camera=cam).eval()
+    cal = UNet(base_channels=4, levels=2, conv="projected", camera=cam).eval()
     assert list(std.state_dict()) == list(cal.state_dict())
     cal.load_state_dict(std.state_dict())
     n_proj = sum(isinstance(m, ProjectedConv2d) for m in cal.modules())
@@ -62,7 +62,7 @@ def test_calibrated_with_a_pinhole_camera_at_its_centre_is_nearly_standard():
     from omnidl.cameras.pinhole import Pinhole
     torch.manual_seed(0)
     std = UNet(tasks=["depth"], base_channels=4, levels=1).eval()
-    cal = UNet(tasks=["depth"], base_channels=4, levels=1, conv="calibrated",
+    cal = UNet(tasks=["depth"], base_channels=4, levels=1, conv="projected",
                camera=Pinhole(width=16, height=16, fx=200.0, fy=200.0, cx=8.0, cy=8.0)).eval()
     cal.load_state_dict(std.state_dict())
     x = torch.rand(1, 3, 16, 16)
@@ -71,7 +71,7 @@ def test_calibrated_with_a_pinhole_camera_at_its_centre_is_nearly_standard():
 
 
 def test_image_size_must_match_calibration_aspect():
-    cal = UNet(base_channels=2, levels=1, conv="calibrated", camera=small_fisheye(48, 32))
+    cal = UNet(base_channels=2, levels=1, conv="projected", camera=small_fisheye(48, 32))
     cal(torch.rand(1, 3, 16, 24))   # uniformly resized: fine
     with pytest.raises(ValueError, match="disagrees with the calibration"):
         cal(torch.rand(1, 3, 16, 16))
@@ -82,7 +82,7 @@ def test_image_size_must_match_calibration_aspect():
 
 def test_bad_arguments():
     with pytest.raises(ValueError, match="needs the camera"):
-        UNet(conv="calibrated")
+        UNet(conv="projected")
     with pytest.raises(ValueError, match="conv must be"):
         UNet(conv="equi")
     with pytest.raises(ValueError, match="tasks"):
@@ -96,7 +96,7 @@ def test_pretrained_weights_from_local_path(tmp_path):
     torch.manual_seed(1)
     src = UNet(base_channels=4, levels=2)
     save_checkpoint(tmp_path / "bl.pt", {"model": src.state_dict()})
-    m = create_model("unet", base_channels=4, levels=2, pretrained=str(tmp_path / "bl.pt"), conv="calibrated",
+    m = create_model("unet", base_channels=4, levels=2, pretrained=str(tmp_path / "bl.pt"), conv="projected",
                      camera=small_fisheye())
     for k, v in src.state_dict().items():
         torch.testing.assert_close(m.state_dict()[k], v)
