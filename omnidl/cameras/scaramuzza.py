@@ -19,12 +19,17 @@ omnidl uses ``(u, v) = (col, row)`` and the OpenCV frame, so with ``x_s`` along 
     u = x_s + e y_s + cx,      v = d x_s + c y_s + cy,      ray = (x_s, y_s, -f(rho))
 
 The fields ``cx, cy`` are the centre in omnidl pixels. :func:`read_ocamcalib` converts a
-``calib_results.txt`` (1-based MATLAB pixel centres by default: ``cx = yc - 0.5``, ``cy = xc - 0.5``).
+``calib_results.txt``. The toolbox's exporter writes the centre for its C code, where pixel coordinates
+start from 0 (it writes ``xc - 1, yc - 1`` of MATLAB's 1-based values) and says so in the comment above
+the centre line; the reader follows that comment: 0-based (``cx = yc + 0.5``, ``cy = xc + 0.5``) when
+it says the coordinates start from 0, 1-based MATLAB values (``cx = yc - 0.5``, ``cy = xc - 0.5``) when
+it names no convention (files written by hand or by older exporters), unless ``one_based`` is given.
 """
 from __future__ import annotations
 
 import functools
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,20 +44,44 @@ from .registry import construct, register_camera
 from .solvers import newton_polish, polyder, polyval, solve_increasing
 
 
-def read_ocamcalib(path: str | Path, one_based: bool = True) -> dict[str, Any]:
+#: phrases of the centre line's comment that state 0-based (C) pixel coordinates
+_ZERO_BASED = re.compile(r"start(?:s|ing)?\s+(?:from|at)\s+(?:0|zero)\b|\b(?:0|zero)[- ]based\b", re.IGNORECASE)
+#: phrases that state 1-based (MATLAB) pixel coordinates
+_ONE_BASED = re.compile(r"start(?:s|ing)?\s+(?:from|at)\s+(?:1|one)\b|\b(?:1|one)[- ]based\b", re.IGNORECASE)
+
+
+def centre_convention(comment: str) -> bool | None:
+    """``True`` (1-based), ``False`` (0-based) or ``None`` (not stated) from the centre line's comment."""
+    if _ZERO_BASED.search(comment):
+        return False
+    if _ONE_BASED.search(comment):
+        return True
+    return None
+
+
+def read_ocamcalib(path: str | Path, one_based: bool | None = None) -> dict[str, Any]:
     """Read OCamCalib's ``calib_results.txt`` into :class:`Scaramuzza` fields.
 
     The file has five data lines (``#`` lines are comments): ``N a0 .. a{N-1}`` (pol),
     ``M b0 .. b{M-1}`` (invpol), ``xc yc`` (row, column of the centre), ``c d e`` and
-    ``height width``. ``one_based``: the centre uses MATLAB's 1-based pixel centres
-    (converted with ``-0.5``); pass False for 0-based pixel centres (``+0.5``).
+    ``height width``. ``one_based``: ``None`` (default) reads the convention of the centre from the
+    comment above it (the toolbox writes "In C the coordinates start from 0" and ``xc - 1, yc - 1``:
+    0-based pixel centres, converted with ``+0.5``); a comment that names no convention means 1-based
+    MATLAB pixel centres (``-0.5``). ``True``/``False`` force 1-based/0-based.
     """
     path = Path(path)
     try:
         lines = [ln.strip() for ln in path.read_text().splitlines()]
     except OSError as e:
         raise ValueError(f"OCamCalib file {str(path)!r} cannot be read: {e}") from e
-    rows = [ln for ln in lines if ln and not ln.startswith("#")]
+    rows, comments, pending = [], [], []
+    for ln in lines:
+        if ln.startswith("#"):
+            pending.append(ln)
+        elif ln:
+            rows.append(ln)
+            comments.append(" ".join(pending))
+            pending = []
     names = ["pol", "invpol", "centre (xc yc)", "affine (c d e)", "image size (height width)"]
     if len(rows) < 5:
         raise ValueError(f"OCamCalib file {str(path)!r}: expected 5 data lines ({', '.join(names)}), "
@@ -73,6 +102,9 @@ def read_ocamcalib(path: str | Path, one_based: bool = True) -> dict[str, Any]:
     xc, yc = vals[2]
     c, d, e = vals[3]
     height, width = vals[4]
+    if one_based is None:
+        stated = centre_convention(comments[2])
+        one_based = True if stated is None else stated
     shift = -0.5 if one_based else 0.5
     return dict(width=int(width), height=int(height), pol=polys[0], invpol=polys[1], cx=yc + shift, cy=xc + shift,
                 c=c, d=d, e=e)
@@ -193,16 +225,20 @@ class Scaramuzza(Camera):
     # -- construction ----------------------------------------------------------------------
     @classmethod
     def from_config(cls, params: Mapping[str, Any]) -> "Scaramuzza":
-        """Fields, or ``calib_file`` (OCamCalib ``calib_results.txt``; ``one_based`` default True) + overrides."""
+        """Fields, or ``calib_file`` (OCamCalib ``calib_results.txt``) + overrides.
+
+        ``one_based``: the centre's convention (default ``None``: as the file's comment states, see
+        :func:`read_ocamcalib`).
+        """
         params = dict(params)
         path = params.pop("calib_file", None)
-        one_based = params.pop("one_based", True)
+        one_based = params.pop("one_based", None)
         if path is not None:
-            params = {**read_ocamcalib(path, one_based=bool(one_based)), **params}
+            params = {**read_ocamcalib(path, one_based=None if one_based is None else bool(one_based)), **params}
         return construct(cls, params)
 
     @classmethod
-    def from_file(cls, path: str | Path, one_based: bool = True) -> "Scaramuzza":
+    def from_file(cls, path: str | Path, one_based: bool | None = None) -> "Scaramuzza":
         return cls.from_config({"calib_file": path, "one_based": one_based})
 
     @classmethod

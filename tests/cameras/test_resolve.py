@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from omnidl.cameras import (CAMERA_CONFIG_DIR, Equirectangular, NonCentralPanorama, ResizedCamera, build,
@@ -152,3 +153,68 @@ def test_import_pulls_in_no_higher_package():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
+
+
+# -- image size vs calibration: size policies ---------------------------------------------------------------
+
+def test_size_mismatch_is_an_error_naming_the_file_and_both_sizes(calib_file, f195):
+    from omnidl.cameras.resolve import is_uniform_resize
+    assert is_uniform_resize(72, 64, f195) and is_uniform_resize(34, 30, f195) and is_uniform_resize(33, 30, f195)
+    assert is_uniform_resize(2160, 1920, f195)
+    assert not is_uniform_resize(1088, 960, f195) and not is_uniform_resize(1081, 960, f195)
+    assert not is_uniform_resize(2161, 1920, f195) and not is_uniform_resize(64, 64, f195)
+    for spec in (calib_file, {"calib_file": str(calib_file)}):
+        with pytest.raises(ValueError, match=r"1088x960.*disagrees with the calibration of '.*fisheye_calibration_"
+                                             r"FOV195\.txt' \(1080x960\).*size_policy") as info:
+            resolve_camera(spec, 1088, 960, check_aspect=True)
+        assert all(p in str(info.value) for p in ("'pad'", "'crop'", "'scale'"))
+        with pytest.raises(ValueError, match="1088x960.*fisheye_calibration_FOV195"):
+            resolve_camera(spec, 1088, 960, size_policy="error")
+    with pytest.raises(ValueError, match=r"1088x960.*kb_f195\.yaml.*1080x960"):
+        resolve_camera("kb_f195", 1088, 960, check_aspect=True)
+    with pytest.raises(ValueError, match="size_policy must be one of"):
+        resolve_camera(f195, 1088, 960, size_policy="stretch")
+    assert resolve_camera(calib_file, 540, 480, check_aspect=True) == f195.resized(540, 480)   # uniform: fine
+
+
+def test_pad_policy_keeps_the_calibration(calib_file, f195):
+    cam = resolve_camera(calib_file, 1088, 960, size_policy="pad")
+    assert (cam.width, cam.height) == (1088, 960) and (cam.scale_x, cam.scale_y) == (1.0, 1.0)
+    pts = torch.tensor([[0.3, -0.2, 1.0], [-1.0, 0.5, 0.2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    assert torch.equal(cam.project(pts)[0], f195.project(pts)[0])            # every pixel stays where it was
+    assert cam.project(pts[2:])[0].tolist() == [[540.0, 480.0]]
+    rays = cam.unproject(torch.tensor([[1084.0, 480.0], [1000.0, 480.0]], dtype=torch.float64))
+    assert rays.valid.tolist() == [False, True]                               # the 8 extra columns are outside
+    # padded and downscaled by 4 (a 272x240 network input of the 1088x960 padded image)
+    small = resolve_camera(f195, 272, 240, size_policy="pad")
+    assert small.scale_x == small.scale_y == 0.25
+    # the config key states the policy (mapping or camera YAML)
+    assert resolve_camera({"calib_file": str(calib_file), "size_policy": "pad"}, 1088, 960) == cam
+    assert resolve_camera(OmegaConf.create({"calib_file": str(calib_file), "size_policy": "pad"}), 1088, 960) == cam
+
+
+def test_crop_policy(calib_file, f195):
+    cam = resolve_camera(calib_file, 1072, 960, size_policy="crop")
+    assert (cam.width, cam.height) == (1072, 960) and (cam.scale_x, cam.scale_y) == (1.0, 1.0)
+    pts = torch.tensor([[0.3, -0.2, 1.0]], dtype=torch.float64)
+    assert torch.equal(cam.project(pts)[0], f195.project(pts)[0])
+    assert not cam.unproject(torch.tensor([1075.0, 480.0], dtype=torch.float64)).valid   # cut off
+    half = resolve_camera(f195, 536, 480, size_policy="crop")                 # cropped 1072x960, halved
+    assert half.scale_x == half.scale_y == 0.5
+
+
+def test_scale_policy_is_the_old_two_percent_stretch(calib_file, f195, tmp_path):
+    cam = resolve_camera(calib_file, 1088, 960, size_policy="scale")
+    assert (cam.scale_x, cam.scale_y) == (1088 / 1080, 1.0)
+    with pytest.raises(ValueError, match=r"64x64.*disagrees with the calibration.*1080x960.*aspect"):
+        resolve_camera(calib_file, 64, 64, size_policy="scale")
+    check_image_size((960, 1088), f195, size_policy="scale")
+    check_image_size((960, 1088), f195, size_policy="pad")
+    with pytest.raises(ValueError, match="1088x960"):
+        check_image_size((960, 1088), f195)
+    yaml = tmp_path / "cam.yaml"
+    yaml.write_text(f"type: kannala_brandt\ncalib_file: {calib_file}\nsize_policy: scale\n")
+    assert resolve_camera(yaml, 1088, 960) == cam
+    assert resolve_camera(yaml) == f195
+    # an explicit argument wins over the config key
+    assert resolve_camera(yaml, 1088, 960, size_policy="pad").scale_x == 1.0

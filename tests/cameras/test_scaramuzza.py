@@ -106,3 +106,43 @@ def test_bad_files(tmp_path):
         read_ocamcalib(p)
     with pytest.raises(ValueError, match="a0 < 0"):
         Scaramuzza(width=8, height=8, pol=(1.0, 0.0))
+
+
+# The toolbox's exporter states the C convention above the centre line and writes xc - 1, yc - 1.
+TOOLBOX_CENTRE_COMMENT = ('#center: "row" and "column" coordinates (x, y) of the center of the image. '
+                          'In C the coordinates start from 0')
+
+
+def _with_centre(comment, xc, yc):
+    lines = CALIB.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("#center"))
+    lines[i] = comment
+    lines[i + 2] = f"{xc!r} {yc!r}"
+    return "\n".join(lines) + "\n"
+
+
+def test_toolbox_file_with_a_known_centre_lands_exactly_there(tmp_path):
+    # principal point at omnidl pixel (u, v) = (321.25, 239.75): 0-based C pixel coordinates (col, row) =
+    # (320.75, 239.25), written by the toolbox as "row col" = xc-1, yc-1 of MATLAB's 1-based values
+    path = tmp_path / "calib_results.txt"
+    path.write_text(_with_centre(TOOLBOX_CENTRE_COMMENT, 239.25, 320.75))
+    cam = Scaramuzza.from_file(path)
+    assert (cam.cx, cam.cy) == (321.25, 239.75)
+    assert build({"type": "scaramuzza", "calib_file": str(path)}) == cam
+    ray = cam.unproject(torch.tensor([321.25, 239.75], dtype=torch.float64))
+    assert ray.valid and ray.direction.tolist() == [0.0, 0.0, 1.0]
+    uv, valid = cam.project(torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64))
+    assert valid and uv.tolist() == [321.25, 239.75]
+    # the same numbers in a file that states MATLAB's 1-based convention, and forced conventions
+    path.write_text(_with_centre("#center (row, column), MATLAB 1-based pixel coordinates", 239.25, 320.75))
+    assert (read_ocamcalib(path)["cx"], read_ocamcalib(path)["cy"]) == (320.25, 238.75)
+    assert read_ocamcalib(path, one_based=False)["cx"] == 321.25
+    assert Scaramuzza.from_config({"calib_file": str(path), "one_based": False}).cy == 239.75
+
+
+def test_centre_convention_from_the_comment():
+    from omnidl.cameras.scaramuzza import centre_convention
+    assert centre_convention(TOOLBOX_CENTRE_COMMENT) is False
+    assert centre_convention("# centre, zero-based") is False
+    assert centre_convention("# centre, 1-based (MATLAB)") is True
+    assert centre_convention('#center: "row" and "column" coordinates (x, y) of the center of the image') is None
