@@ -1,11 +1,14 @@
 """Command line: render another camera's image from an image (a panorama by default).
 
     python -m omnidl.apps.reproject --src pano.png --dst-camera configs/camera/kb_f195.yaml --out f.png \
-        [--src-camera cam.yaml] [--rotation ROLL,PITCH,YAW] [--mode bilinear|nearest] [--mask-out valid.png]
+        [--src-camera cam.yaml] [--size-policy error|pad|crop|scale] [--rotation ROLL,PITCH,YAW]
+        [--mode bilinear|nearest] [--mask-out valid.png]
 
 * ``--src-camera``/``--dst-camera`` take any spec of :func:`omnidl.cameras.resolve_camera` (a camera
-  YAML file, a Kannala–Brandt calibration file or a ``configs/camera`` name); ``--src-camera``
-  defaults to a full equirectangular camera of the image's size.
+  YAML file, a calibration file, a ``configs/camera`` name); ``--src-camera`` defaults to a full
+  equirectangular camera of the image's size. A source camera calibrated at another size than the
+  image is used on the image uniformly resized; any other size is an error unless ``--size-policy``
+  says how the image relates to the calibrated one (``pad``/``crop`` right-bottom, ``scale``).
 * ``--rotation`` (degrees, :func:`omnidl.geometry.rotations.euler_to_matrix` convention) is
   ``R_src_dst``: ``0,30,0`` renders a camera looking 30° above the source's optical axis.
 * Images are read and written with OpenCV (8/16-bit or float, any channel count); the
@@ -30,9 +33,16 @@ class CLIError(Exception):
     """A user error with a message that names the file/field."""
 
 
-def load_camera(spec: str) -> Camera:
-    """:func:`omnidl.cameras.resolve_camera` with its errors turned into a :class:`CLIError` naming ``spec``."""
+def load_camera(spec: str, width: int | None = None, height: int | None = None,
+                size_policy: str | None = None) -> Camera:
+    """:func:`omnidl.cameras.resolve_camera` with its errors turned into a :class:`CLIError` naming ``spec``.
+
+    With ``width``/``height`` (the source image's size) the camera is fitted to that size following
+    ``size_policy`` (default ``"error"`` unless the size is the calibrated image uniformly resized).
+    """
     try:
+        if width is not None:
+            return resolve_camera(spec, width, height, check_aspect=True, size_policy=size_policy)
         return resolve_camera(spec)
     except (ValueError, KeyError, TypeError, OSError) as e:
         raise CLIError(f"camera {spec!r}: {e}") from e
@@ -94,6 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="output image path (format from its suffix)")
     ap.add_argument("--src-camera", default=None, help="camera of the source image (default: equirect of the "
                                                         "image size)")
+    ap.add_argument("--size-policy", default=None, choices=["error", "pad", "crop", "scale"],
+                    help="how the source image relates to a source camera calibrated at another size "
+                         "(default: error)")
     ap.add_argument("--rotation", default=None, help="R_src_dst as 'roll,pitch,yaw' in degrees")
     ap.add_argument("--mode", default="bilinear", choices=["bilinear", "nearest"])
     ap.add_argument("--mask-out", default=None, help="also write the valid mask (0/255 PNG)")
@@ -101,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         img = read_image(args.src)
         h, w = img.shape[:2]
-        src_cam = load_camera(args.src_camera) if args.src_camera else Equirectangular(width=w, height=h)
+        src_cam = (load_camera(args.src_camera, w, h, args.size_policy) if args.src_camera
+                   else Equirectangular(width=w, height=h))
         dst_cam = load_camera(args.dst_camera)
         rotation = parse_rotation(args.rotation)
         out, valid = reproject_array(img, src_cam, dst_cam, rotation, args.mode)

@@ -69,3 +69,24 @@ def test_cli_errors(tmp_path, capsys):
     assert main(["--src", str(tmp_path / "pano.png"), "--src-camera", str(tmp_path / "pin.yaml")] + base) == 2
     assert "64x32" in capsys.readouterr().err
     assert not (tmp_path / "o.png").exists()
+
+
+def test_cli_cameras_from_calibration_files_and_config_names(tmp_path, capsys):
+    """``--src-camera``/``--dst-camera`` take every spec resolve_camera takes: calibration files, config names."""
+    from omnidl.apps.reproject import load_camera
+    from omnidl.cameras import resolve_camera
+    write_inputs(tmp_path)
+    kb = tmp_path / "fisheye_calibration.txt"          # KB text: cx cy fx fy W H FOV k1..k4
+    kb.write_text("20 16 12 12 40 32 190 0 0 0 0\n")
+    assert main(["--src", str(tmp_path / "pano.png"), "--dst-camera", str(kb), "--out", str(tmp_path / "kb.png")]) == 0
+    assert cv2.imread(str(tmp_path / "kb.png")).shape == (32, 40, 3)
+    assert load_camera("kb_f195") == resolve_camera("kb_f195")
+    # a source camera given by config name, calibrated at another size than the image: uniform resize is fine,
+    # a 2:1 panorama under a 1080x960 calibration is an error naming both sizes unless a policy says otherwise
+    assert load_camera("equirect", 64, 32).size == (64, 32)
+    rc = main(["--src", str(tmp_path / "pano.png"), "--src-camera", "kb_f195", "--dst-camera", str(kb),
+               "--out", str(tmp_path / "o.png")])
+    assert rc == 2 and not (tmp_path / "o.png").exists()
+    err = capsys.readouterr().err
+    assert "kb_f195" in err and "64x32" in err and "1080x960" in err and "size_policy" in err
+    assert load_camera("kb_f195", 64, 32, "pad").size == (64, 32)
