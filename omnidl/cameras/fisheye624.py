@@ -36,6 +36,7 @@ from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
+from .distortion import tangential_prism, tangential_prism_jacobian
 from .solvers import newton_polish, newton_polish_2d, polyval, solve_2d, solve_increasing
 
 
@@ -119,23 +120,13 @@ class Fisheye624(Camera):
 
     def distort(self, xy: Tensor) -> Tensor:
         """``(..., 2)`` fisheye-plane ``(x, y)`` -> ``(x', y')`` (tangential and thin prism terms)."""
-        x, y = xy[..., 0], xy[..., 1]
-        r2 = x * x + y * y
-        xd = x + 2 * self.p1 * x * y + self.p0 * (r2 + 2 * x * x) + r2 * (self.s0 + self.s1 * r2)
-        yd = y + 2 * self.p0 * x * y + self.p1 * (r2 + 2 * y * y) + r2 * (self.s2 + self.s3 * r2)
-        return torch.stack([xd, yd], -1)
+        dx, dy = tangential_prism(xy, self.p1, self.p0, (self.s0, self.s1, self.s2, self.s3))
+        return torch.stack([xy[..., 0] + dx, xy[..., 1] + dy], -1)
 
     def distort_jacobian(self, xy: Tensor) -> Tensor:
         """``(..., 2, 2)`` Jacobian ``d(x', y') / d(x, y)``."""
-        x, y = xy[..., 0], xy[..., 1]
-        r2 = x * x + y * y
-        tx = 2 * (self.s0 + 2 * self.s1 * r2)
-        ty = 2 * (self.s2 + 2 * self.s3 * r2)
-        a = 1 + 2 * self.p1 * y + 6 * self.p0 * x + tx * x
-        b = 2 * self.p1 * x + 2 * self.p0 * y + tx * y
-        c = 2 * self.p0 * y + 2 * self.p1 * x + ty * x
-        d = 1 + 2 * self.p0 * x + 6 * self.p1 * y + ty * y
-        return torch.stack([torch.stack([a, b], -1), torch.stack([c, d], -1)], -2)
+        a, b, c, d = tangential_prism_jacobian(xy, self.p1, self.p0, (self.s0, self.s1, self.s2, self.s3))
+        return torch.stack([torch.stack([1 + a, b], -1), torch.stack([c, 1 + d], -1)], -2)
 
     def _regular(self, xy: Tensor) -> Tensor:
         """``(...)`` bool: the tangential/prism map is locally invertible at ``xy`` (``det J > 0``)."""

@@ -34,6 +34,7 @@ from torch import Tensor
 
 from .base import Camera, Rays, in_image, normalize
 from .registry import register_camera
+from .distortion import tangential_prism, tangential_prism_jacobian
 from .solvers import newton_polish_2d, solve_2d
 
 DIST_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
@@ -121,15 +122,17 @@ class OpenCVPinhole(Camera):
         den = 1 + r2 * (self.k4 + r2 * (self.k5 + r2 * self.k6))
         return num, den
 
+    @property
+    def _prism(self) -> tuple[float, float, float, float]:
+        return (self.s1, self.s2, self.s3, self.s4)
+
     def distort(self, xy: Tensor) -> Tensor:
         """``(..., 2)`` normalised undistorted ``(x, y)`` -> distorted ``(x', y')`` (module formula)."""
         x, y = xy[..., 0], xy[..., 1]
-        r2 = x * x + y * y
-        num, den = self._radial(r2)
+        num, den = self._radial(x * x + y * y)
         rad = num / den
-        xd = x * rad + 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x) + r2 * (self.s1 + self.s2 * r2)
-        yd = y * rad + self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y + r2 * (self.s3 + self.s4 * r2)
-        return torch.stack([xd, yd], -1)
+        dx, dy = tangential_prism(xy, self.p1, self.p2, self._prism)
+        return torch.stack([x * rad + dx, y * rad + dy], -1)
 
     def distort_jacobian(self, xy: Tensor) -> Tensor:
         """``(..., 2, 2)`` Jacobian ``d(x', y') / d(x, y)`` of :meth:`distort`."""
@@ -140,12 +143,11 @@ class OpenCVPinhole(Camera):
         dden = self.k4 + r2 * (2 * self.k5 + 3 * self.k6 * r2)
         rad = num / den
         drad = (dnum * den - num * dden) / (den * den)  # dR / d r2
-        tx = 2 * (self.s1 + 2 * self.s2 * r2)  # d(s1 r2 + s2 r2^2) / d r2, times 2 (d r2 / dx = 2x)
-        ty = 2 * (self.s3 + 2 * self.s4 * r2)
-        a = rad + 2 * x * x * drad + 2 * self.p1 * y + 6 * self.p2 * x + tx * x
-        b = 2 * x * y * drad + 2 * self.p1 * x + 2 * self.p2 * y + tx * y
-        c = 2 * x * y * drad + 2 * self.p1 * x + 2 * self.p2 * y + ty * x
-        d = rad + 2 * y * y * drad + 6 * self.p1 * y + 2 * self.p2 * x + ty * y
+        ta, tb, tc, td = tangential_prism_jacobian(xy, self.p1, self.p2, self._prism)
+        a = rad + 2 * x * x * drad + ta
+        b = 2 * x * y * drad + tb
+        c = 2 * x * y * drad + tc
+        d = rad + 2 * y * y * drad + td
         return torch.stack([torch.stack([a, b], -1), torch.stack([c, d], -1)], -2)
 
     def _regular(self, xy: Tensor) -> Tensor:
