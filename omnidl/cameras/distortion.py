@@ -11,7 +11,10 @@ to the fisheye-plane point, with its ``(p0, p1)`` in the slots of OpenCV's ``(p2
 """
 from __future__ import annotations
 
+import torch
 from torch import Tensor
+
+from .base import in_image
 
 
 def tangential_prism(xy: Tensor, p1: float, p2: float, s: tuple[float, float, float, float]) -> tuple[Tensor, Tensor]:
@@ -32,3 +35,25 @@ def tangential_prism_jacobian(xy: Tensor, p1: float, p2: float,
     ty = 2 * (s[2] + 2 * s[3] * r2)
     return (2 * p1 * y + 6 * p2 * x + tx * x, 2 * p1 * x + 2 * p2 * y + tx * y,
             2 * p1 * x + 2 * p2 * y + ty * x, 6 * p1 * y + 2 * p2 * x + ty * y)
+
+
+def plane_to_pixels(camera, xy: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
+    """Undistorted plane points ``xy (..., 2)`` of ``camera`` (fields ``fx fy cx cy``, methods ``distort`` and
+    ``_regular``) -> ``(uv (..., 2), valid (...))``: distorted, through ``K``; points not ``ok`` (or where the
+    distortion is not locally invertible) sit at the principal point and are invalid, as are pixels outside."""
+    ok = ok & camera._regular(xy)
+    xd = camera.distort(xy)
+    uv = torch.stack([camera.fx * xd[..., 0] + camera.cx, camera.fy * xd[..., 1] + camera.cy], -1)
+    centre = torch.tensor([camera.cx, camera.cy], dtype=uv.dtype, device=uv.device)
+    uv = torch.where(ok.unsqueeze(-1), uv, centre)
+    return uv, ok & in_image(uv, camera.width, camera.height)
+
+
+def pixels_to_plane(camera, uv: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixels ``uv (..., 2)`` -> ``(undistorted plane points (..., 2), ok (...))`` through ``K^-1`` and
+    ``camera.undistort``; pixels outside the image are solved at the principal point and are not ok."""
+    inside = in_image(uv, camera.width, camera.height)
+    xd = torch.stack([(uv[..., 0] - camera.cx) / camera.fx, (uv[..., 1] - camera.cy) / camera.fy], -1)
+    xd = torch.where(inside.unsqueeze(-1), xd, torch.zeros_like(xd))
+    xy, ok = camera.undistort(xd)
+    return xy, ok & inside

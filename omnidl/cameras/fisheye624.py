@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import Camera, Rays, in_image, safe_norm
+from .base import Camera, Rays, safe_norm
 from .registry import register_camera
-from .distortion import tangential_prism, tangential_prism_jacobian
+from .distortion import pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian
 from .solvers import newton_polish, newton_polish_2d, polyval, solve_2d, solve_increasing
 
 
@@ -154,20 +154,12 @@ class Fisheye624(Camera):
         theta_s = torch.where(ok, theta, torch.zeros_like(theta))
         scale = self._td_over_sin(theta_s) / torch.where(ok, norm, torch.ones_like(norm))
         xy = scale.unsqueeze(-1) * torch.where(ok.unsqueeze(-1), points[..., :2], torch.zeros_like(points[..., :2]))
-        ok = ok & self._regular(xy)
-        xd = self.distort(xy)
-        uv = torch.stack([self.fx * xd[..., 0] + self.cx, self.fy * xd[..., 1] + self.cy], -1)
-        centre = torch.tensor([self.cx, self.cy], dtype=uv.dtype, device=uv.device)
-        uv = torch.where(ok.unsqueeze(-1), uv, centre)
-        return uv, ok & in_image(uv, self.width, self.height)
+        return plane_to_pixels(self, xy, ok)
 
     def unproject(self, uv: Tensor) -> Rays:
-        inside = in_image(uv, self.width, self.height)
-        xd = torch.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], -1)
-        xd = torch.where(inside.unsqueeze(-1), xd, torch.zeros_like(xd))
-        xy, ok = self.undistort(xd)
+        xy, ok = pixels_to_plane(self, uv)
         rho = safe_norm(xy)
-        ok = ok & inside & (rho <= self.rho_max)
+        ok = ok & (rho <= self.rho_max)
         rho = torch.where(ok, rho, torch.zeros_like(rho))
         xy = torch.where(ok.unsqueeze(-1), xy, torch.zeros_like(xy))
         theta = self.inverse_theta_d(rho)

@@ -32,9 +32,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .base import Camera, Rays, in_image, normalize
+from .base import Camera, Rays, normalize
 from .registry import register_camera
-from .distortion import tangential_prism, tangential_prism_jacobian
+from .distortion import pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian
 from .solvers import newton_polish_2d, solve_2d
 
 DIST_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
@@ -180,19 +180,10 @@ class OpenCVPinhole(Camera):
             ok = front & (((x / zs) ** 2 + (y / zs) ** 2) <= self.r_max ** 2)
         xy = torch.stack([torch.where(ok, x, torch.zeros_like(x)), torch.where(ok, y, torch.zeros_like(y))], -1)
         xy = xy / torch.where(ok, zs, torch.ones_like(zs)).unsqueeze(-1)
-        ok = ok & self._regular(xy)
-        xd = self.distort(xy)
-        uv = torch.stack([self.fx * xd[..., 0] + self.cx, self.fy * xd[..., 1] + self.cy], -1)
-        centre = torch.tensor([self.cx, self.cy], dtype=uv.dtype, device=uv.device)
-        uv = torch.where(ok.unsqueeze(-1), uv, centre)
-        return uv, ok & in_image(uv, self.width, self.height)
+        return plane_to_pixels(self, xy, ok)
 
     def unproject(self, uv: Tensor) -> Rays:
-        inside = in_image(uv, self.width, self.height)
-        xd = torch.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], -1)
-        xd = torch.where(inside.unsqueeze(-1), xd, torch.zeros_like(xd))
-        xy, ok = self.undistort(xd)
-        ok = ok & inside
+        xy, ok = pixels_to_plane(self, uv)
         d = normalize(torch.cat([xy, torch.ones_like(xy[..., :1])], -1))
         d = torch.where(ok.unsqueeze(-1), d, torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype, device=d.device))
         return Rays(torch.zeros_like(d), d, ok)
