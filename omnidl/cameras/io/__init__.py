@@ -30,6 +30,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ...utils.io import atomic_write_text
 from ..base import Camera
 from . import colmap, kalibr, kb_txt, ocamcalib, opencv_storage, orbslam3
 from ._common import OPENCV_SHIFT, UnsupportedModelError, family_of, make
@@ -208,5 +209,5 @@ def save(camera: Camera | Mapping[Any, Camera], path: str | os.PathLike, format:
                                     "'omnidl' YAML or another format")
     else:
         import yaml
-        path.write_text(yaml.safe_dump(camera.to_config(), sort_keys=False))
+        atomic_write_text(path, yaml.safe_dump(camera.to_config(), sort_keys=False))
     return path

@@ -45,6 +45,7 @@ import struct
 from collections.abc import Mapping
 from pathlib import Path
 
+from ...utils.io import atomic_write_bytes, atomic_write_text
 from ..base import Camera
 from ._common import UnsupportedModelError, family_of, make, positive_int, select, theta_poly_max_fov, unsupported
 
@@ -254,13 +255,13 @@ def write(cameras: Camera | Mapping[int, Camera], path: str | Path) -> None:
         blob = [struct.pack("<Q", len(rows))]
         for cid, model, w, h, params in rows:
             blob.append(struct.pack(f"<iiQQ{len(params)}d", cid, MODEL_IDS[model], w, h, *params))
-        path.write_bytes(b"".join(blob))
+        atomic_write_bytes(path, b"".join(blob))
         return
     lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
              f"# Number of cameras: {len(rows)}"]
     lines += [" ".join([str(cid), model, str(w), str(h)] + [repr(v) for v in params])
               for cid, model, w, h, params in rows]
-    path.write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def looks_like(text: str) -> bool:

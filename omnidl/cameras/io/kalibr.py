@@ -23,6 +23,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ...utils.io import atomic_write_text
 from ..base import Camera
 from ._common import (OPENCV_SHIFT, family_of, make, positive_int, require_zero, select, theta_poly_max_fov,
                       unsupported)
@@ -139,7 +140,7 @@ def write(cameras: Camera | Mapping[str, Camera], path: str | Path) -> None:
     import yaml
     items = cameras.items() if isinstance(cameras, Mapping) else [("cam0", cameras)]
     data = {str(k): from_camera(v) for k, v in items}
-    Path(path).write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
+    atomic_write_text(path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
 
 
 def looks_like(data: Mapping[str, Any]) -> bool:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ...utils.io import atomic_write_text
 from ..base import Camera
 from ._common import family_of, make, unsupported
 
@@ -27,7 +28,7 @@ def write(camera: Camera, path: str | Path) -> None:
     if c.k0 != 1:
         raise unsupported(FORMAT, c, ("kannala_brandt",), f"the file format has k0 = 1, got k0 = {c.k0}")
     vals = [c.cx, c.cy, c.fx, c.fy, c.width, c.height, math.degrees(c.max_fov), c.k1, c.k2, c.k3, c.k4]
-    Path(path).write_text("\n".join(repr(v) if isinstance(v, float) else str(v) for v in vals) + "\n")
+    atomic_write_text(path, "\n".join(repr(v) if isinstance(v, float) else str(v) for v in vals) + "\n")
 
 
 def looks_like(text: str) -> bool:

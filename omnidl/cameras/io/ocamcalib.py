@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ...utils.io import atomic_write_text
 from ..base import Camera
 from ._common import family_of, make, unsupported
 
@@ -40,7 +41,7 @@ def write(camera: Camera, path: str | Path) -> None:
              f"{float(c.cy) - 0.5!r} {float(c.cx) - 0.5!r}", "",
              '#affine parameters "c", "d", "e"', "", f"{float(c.c)!r} {float(c.d)!r} {float(c.e)!r}", "",
              '#image size: "height" and "width"', "", f"{int(c.height)} {int(c.width)}"]
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def looks_like(text: str) -> bool:

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ...utils.io import atomic_write_text
 from ..base import Camera
 from ._common import OPENCV_SHIFT, family_of, make, positive_int, theta_poly_max_fov, unsupported
 
@@ -252,7 +253,7 @@ def write(camera: Camera, path: str | Path) -> None:
         for k, m in mats:
             out.append(f"{k}: !!opencv-matrix\n   rows: {m.shape[0]}\n   cols: {m.shape[1]}\n   dt: d\n"
                        f"   data: [ {', '.join(_fmt(v) for v in m.ravel())} ]")
-    path.write_text("\n".join(out) + "\n")
+    atomic_write_text(path, "\n".join(out) + "\n")
 
 
 def looks_like(data: dict[str, Any]) -> bool:

@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ...utils.io import atomic_write_text
 from ..base import Camera
 from ._common import OPENCV_SHIFT, family_of, make, positive_int, require_zero, theta_poly_max_fov, unsupported
 from .opencv_storage import parse
@@ -89,7 +90,7 @@ def write(camera: Camera, path: str | Path) -> None:
     lines = ["%YAML:1.0", "", 'File.version: "1.0"', "", f'Camera.type: "{ctype}"', ""]
     lines += [f"Camera1.{k}: {float(v)!r}" for k, v in vals.items()]
     lines += ["", f"Camera.width: {int(c.width)}", f"Camera.height: {int(c.height)}"]
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def looks_like(data: Mapping[str, Any]) -> bool:
