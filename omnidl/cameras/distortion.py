@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from .base import in_image
+from .solvers import newton_polish_2d, solve_2d
 
 
 def tangential_prism(xy: Tensor, p1: float, p2: float, s: tuple[float, float, float, float]) -> tuple[Tensor, Tensor]:
@@ -57,3 +58,18 @@ def pixels_to_plane(camera, uv: Tensor) -> tuple[Tensor, Tensor]:
     xd = torch.where(inside.unsqueeze(-1), xd, torch.zeros_like(xd))
     xy, ok = camera.undistort(xd)
     return xy, ok & inside
+
+
+def undistort_plane(camera, xy_d: Tensor, max_norm: float) -> tuple[Tensor, Tensor]:
+    """Invert ``camera.distort`` on plane points ``xy_d (..., 2)`` -> ``(xy (..., 2), ok (...))``.
+
+    2-D Newton (:func:`~omnidl.cameras.solvers.solve_2d`, roots within ``max_norm``), then one differentiable
+    step (implicit-function gradient). ``ok`` is False where Newton did not converge or the root leaves the
+    invertible region (``camera._regular``); ``xy`` stays finite there.
+    """
+    x, conv = solve_2d(camera.distort, camera.distort_jacobian, xy_d, max_norm=max_norm)
+    ok = conv & camera._regular(x)
+    x = torch.where(ok.unsqueeze(-1), x, torch.zeros_like(x))
+    target = torch.where(ok.unsqueeze(-1), xy_d, torch.zeros_like(xy_d))
+    x = newton_polish_2d(x, lambda z: camera.distort(z) - target, camera.distort_jacobian(x))
+    return x, ok

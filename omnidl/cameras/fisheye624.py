@@ -36,8 +36,9 @@ from torch import Tensor
 
 from .base import Camera, Rays, safe_norm
 from .registry import register_camera
-from .distortion import pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian
-from .solvers import newton_polish, newton_polish_2d, polyval, solve_2d, solve_increasing
+from .distortion import (pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian,
+                         undistort_plane)
+from .solvers import newton_polish, polyval, solve_increasing
 
 
 @dataclass(frozen=True)
@@ -139,12 +140,7 @@ class Fisheye624(Camera):
         """Invert :meth:`distort` (``(..., 2)`` -> ``(..., 2)``, ``ok (...)``); implicit-function gradient."""
         if not self._has_tangential:
             return xy_d, torch.isfinite(xy_d).all(-1)
-        x, conv = solve_2d(self.distort, self.distort_jacobian, xy_d, max_norm=self.rho_max)
-        ok = conv & self._regular(x)
-        x = torch.where(ok.unsqueeze(-1), x, torch.zeros_like(x))
-        target = torch.where(ok.unsqueeze(-1), xy_d, torch.zeros_like(xy_d))
-        x = newton_polish_2d(x, lambda z: self.distort(z) - target, self.distort_jacobian(x))
-        return x, ok
+        return undistort_plane(self, xy_d, self.rho_max)
 
     # -- interface -------------------------------------------------------------------------------------
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:

@@ -34,8 +34,8 @@ from torch import Tensor
 
 from .base import Camera, Rays, normalize
 from .registry import register_camera
-from .distortion import pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian
-from .solvers import newton_polish_2d, solve_2d
+from .distortion import (pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian,
+                         undistort_plane)
 
 DIST_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
 
@@ -164,12 +164,7 @@ class OpenCVPinhole(Camera):
         """
         if not any(self.dist_coeffs):
             return xy_d, torch.isfinite(xy_d).all(-1)
-        x, conv = solve_2d(self.distort, self.distort_jacobian, xy_d, max_norm=self.r_max)
-        ok = conv & self._regular(x)
-        x = torch.where(ok.unsqueeze(-1), x, torch.zeros_like(x))
-        target = torch.where(ok.unsqueeze(-1), xy_d, torch.zeros_like(xy_d))
-        x = newton_polish_2d(x, lambda z: self.distort(z) - target, self.distort_jacobian(x))
-        return x, ok
+        return undistort_plane(self, xy_d, self.r_max)
 
     # -- interface -------------------------------------------------------------------------------
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
