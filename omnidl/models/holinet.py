@@ -86,8 +86,7 @@ class HoLiNet(nn.Module):
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, width: float = 1.0,
                  conv: str = "projected", camera: Any = None) -> None:
         super().__init__()
-        self.conv = conv  # as given (an old spelling stays visible until its alias is removed)
-        conv = conv_choice(conv, "HoLiNet")
+        conv = self.conv = conv_choice(conv, "HoLiNet")
         if width <= 0:
             raise ValueError(f"HoLiNet: width must be positive, got {width}")
         self.encoder = ResNetFeatures(backbone, pretrained=pretrained, out_indices=(0, 1, 2, 3, 4))

@@ -79,7 +79,7 @@ class UNet(nn.Module):
         tasks = tuple(tasks)
         if not tasks or set(tasks) - set(TASKS):
             raise ValueError(f"unet: tasks must be a non-empty subset of {TASKS}, got {tasks}")
-        given, conv = conv, conv_choice(conv, "unet")
+        conv = conv_choice(conv, "unet")
         if levels < 1 or base_channels < 1:
             raise ValueError(f"unet: levels and base_channels must be >= 1, got {levels}, {base_channels}")
         self.tasks, self.num_classes, self.max_depth = tasks, int(num_classes), max_depth
@@ -98,7 +98,6 @@ class UNet(nn.Module):
         self.camera: Camera | None = None
         if conv == "projected":
             self.calibrate(camera, **dict(conv_kwargs or {}))
-            self.conv = given  # as given (an old spelling stays visible until its alias is removed)
 
     def load_pretrained(self, path: str | os.PathLike, strict: bool = True) -> None:
         """Load weights from a local checkpoint (nothing is downloaded)."""
