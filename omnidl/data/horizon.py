@@ -30,6 +30,7 @@ from torch.utils.data import Dataset
 from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.geometry.panorama import rotate_panorama
 from omnidl.geometry.rotations import random_tilt_rotation, up_from_rotation
+from .validate import invalid, read_image
 
 
 def horizon_heatmaps(rotation: Tensor, height: int, width: int, sigma_deg: float = 3.0,
@@ -208,11 +209,17 @@ class PanoramaFolder(Dataset):
     Args:
         root: folder of equirectangular images (png/jpg/...).
         height, width: resize to this size (``None`` keeps each file's size).
+        aspect_tolerance: a stored image whose width is not twice its height (within this fraction) is not
+            an equirectangular panorama: a :class:`~omnidl.data.validate.DataValidationError`.
+
+    An unreadable, truncated or non-2:1 file raises a :class:`~omnidl.data.robust.CorruptSampleError` naming
+    it, so training (``SkipCorrupt``) skips it with a warning.
     """
 
     EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
-    def __init__(self, root: str, height: int | None = 256, width: int | None = 512) -> None:
+    def __init__(self, root: str, height: int | None = 256, width: int | None = 512,
+                 aspect_tolerance: float = 0.01) -> None:
         self.root = Path(root).expanduser()
         if not self.root.is_dir():
             raise FileNotFoundError(f"panorama folder {self.root} does not exist")
@@ -220,27 +227,29 @@ class PanoramaFolder(Dataset):
         if not self.files:
             raise FileNotFoundError(f"panorama folder {self.root} holds no images ({', '.join(self.EXTENSIONS)})")
         self.height, self.width = height, width
+        self.aspect_tolerance = float(aspect_tolerance)
 
     def __len__(self) -> int:
         return len(self.files)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        img = read_rgb(self.files[index])
+        path = self.files[index]
+        img = read_rgb(path)
+        h, w = img.shape[-2:]
+        if abs(w - 2 * h) > max(1.0, self.aspect_tolerance * w):
+            raise invalid(path, "panorama size", f"{w}x{h}", "an equirectangular panorama (width = 2 x height)")
         if self.height is not None:
             img = F.interpolate(img[None], size=(self.height, self.width), mode="bilinear", align_corners=False,
                                 antialias=True)[0]
-        return {"image": img, "meta": {"name": self.files[index].name}}
+        return {"image": img, "meta": {"name": path.name}}
 
 
 def read_rgb(path: str | Path) -> Tensor:
-    """``(3, H, W)`` float32 RGB in ``[0, 1]`` of an image file (8 or 16 bit); clear error if unreadable."""
-    import cv2
+    """``(3, H, W)`` float32 RGB in ``[0, 1]`` of an image file (8 or 16 bit, gray or RGB[A]).
+
+    A missing, empty, truncated or undecodable file raises
+    :class:`~omnidl.data.validate.UnreadableFileError` (an ``OSError`` and a ``CorruptSampleError``) naming it."""
     import numpy as np
-    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise IOError(f"could not read image {path}")
-    if arr.ndim == 2:
-        arr = np.repeat(arr[..., None], 3, axis=2)
-    arr = arr[..., :3][..., ::-1]
+    arr = read_image(path, "image", channels=3, dtypes=(np.uint8, np.uint16))
     scale = 65535.0 if arr.dtype == np.uint16 else 255.0
-    return torch.from_numpy(np.ascontiguousarray(arr).astype(np.float32) / scale).permute(2, 0, 1)
+    return torch.from_numpy(arr.astype(np.float32) / scale).permute(2, 0, 1)

@@ -18,25 +18,34 @@ import torch
 from ..cameras import Equirectangular
 from ..geometry.rotations import UPRIGHT_TO_WORLD
 from .layout_targets import boundary_targets, corner_heat
+from .readers import rgb_to_tensor
+from .validate import DataValidationError, check_label_cor, read_raw, read_text
 
 
-def read_label_cor(path: str | Path) -> np.ndarray:
-    """``(2K, 2)`` float array of ``x y`` rows; a clear error names the file and the bad line."""
+def read_label_cor(path: str | Path, width: int | None = None, height: int | None = None,
+                   min_corners: int = 3) -> np.ndarray:
+    """``(2K, 2)`` float array of ``x y`` rows; a clear error names the file and the bad line.
+
+    With ``width``/``height`` (the image's stored size) the corners are also checked by
+    :func:`omnidl.data.validate.check_label_cor`: finite, on the image (``-0.5 <= x < width``,
+    ``-0.5 <= y < height``; never wrapped), ceiling above floor, at least ``min_corners`` corners."""
     path = Path(path)
     rows = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
+    for i, line in enumerate(read_text(path, "label_cor").splitlines(), 1):
         if not line.strip():
             continue
         parts = line.split()
         if len(parts) != 2:
-            raise ValueError(f"{path}:{i}: expected 'x y', got {line!r}")
+            raise DataValidationError(f"{path}:{i}: expected 'x y', got {line!r}")
         try:
             rows.append((float(parts[0]), float(parts[1])))
         except ValueError as e:
-            raise ValueError(f"{path}:{i}: not numbers: {line!r}") from e
+            raise DataValidationError(f"{path}:{i}: not numbers: {line!r}") from e
     arr = np.asarray(rows, float).reshape(-1, 2)
     if len(arr) % 2:
-        raise ValueError(f"{path}: {len(arr)} points; label_cor needs ceiling/floor pairs (an even count)")
+        raise DataValidationError(f"{path}: {len(arr)} points; label_cor needs ceiling/floor pairs (an even count)")
+    if width is not None and height is not None:
+        check_label_cor(arr, path, width, height, min_corners)
     return arr
 
 
@@ -69,6 +78,10 @@ def corners_from_label_cor(cor: np.ndarray, width: int, height: int, camera_heig
 class HorizonNetFolderDataset(torch.utils.data.Dataset):
     """``root/img/NAME.{png,jpg}`` + ``root/label_cor/NAME.txt`` -> layout samples (central panoramas).
 
+    Every sample is validated (:mod:`omnidl.data.validate`): an unreadable image or an invalid ``label_cor``
+    (a point outside the image, NaN, ceiling below floor, fewer than 3 corners) raises a
+    :class:`~omnidl.data.robust.CorruptSampleError` naming the file (skipped with a warning in training).
+
     Keys: ``image (3,H,W)``, ``boundary (2,W)`` rows, ``boundary_valid``, ``corner_heat (1,W)``,
     ``corners_cam (K,2,3)`` (up to the assumed ``camera_height``), ``num_walls``, ``meta``.
     """
@@ -94,18 +107,16 @@ class HorizonNetFolderDataset(torch.utils.data.Dataset):
         return len(self.items)
 
     def __getitem__(self, i: int) -> dict:
-        import cv2
         p, lab = self.items[i]
-        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise IOError(f"cannot read image {p}")
+        bgr = read_raw(p, 1, "image")                                    # IMREAD_COLOR; unreadable -> named error
         H0, W0 = bgr.shape[:2]
         W, H = self.width or W0, self.height or H0
-        if (W, H) != (W0, H0):
-            bgr = cv2.resize(bgr, (W, H), interpolation=cv2.INTER_AREA)
-        img = torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float() / 255
-        cor = read_label_cor(lab) * np.array([W / W0, H / H0])
-        cc = corners_from_label_cor(cor, W, H, self.camera_height)
+        img = rgb_to_tensor(bgr, (W, H))
+        cor = read_label_cor(lab, W0, H0) * np.array([W / W0, H / H0])
+        try:
+            cc = corners_from_label_cor(cor, W, H, self.camera_height)
+        except ValueError as e:
+            raise DataValidationError(f"{lab}: {e}") from e
         cam = Equirectangular(width=W, height=H)
         rows, valid = boundary_targets(cc, cam)
         return {"image": img, "boundary": rows, "boundary_valid": valid,

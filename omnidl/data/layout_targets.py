@@ -75,12 +75,18 @@ def boundary_targets(corners_cam: np.ndarray, camera: Any) -> tuple[Tensor, Tens
 
 
 def corner_probability(columns: np.ndarray, width: int, base: float = CORNER_BASE) -> np.ndarray:
-    """``(W,)`` float64 HorizonNet corner target ``base ** d``, ``d`` the circular column distance of column
-    centre ``j + 0.5`` to the nearest corner column (zeros without corners)."""
+    """``(W,)`` float64 HorizonNet corner target ``base ** d`` in ``(0, 1]``, ``d`` the circular column distance of
+    column centre ``j + 0.5`` to the nearest corner column (zeros without corners).
+
+    Columns are continuous ``u`` on the circle of ``width`` columns (taken modulo ``width``); a NaN/inf
+    column is a ``ValueError`` (the readers refuse such labels earlier, naming the file)."""
     u = np.arange(width) + 0.5
     cols = np.asarray(columns, float).reshape(-1)
     if len(cols) == 0:
         return np.zeros(width)
+    if not np.isfinite(cols).all():
+        raise ValueError(f"corner_probability: corner columns must be finite, got {cols[~np.isfinite(cols)][:3]}")
+    cols = np.mod(cols, width)
     dist = np.abs(u[:, None] - cols[None])
     dist = np.minimum(dist, width - dist).min(1)
     return base ** dist

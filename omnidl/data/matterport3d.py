@@ -4,7 +4,7 @@ Expected layout::
 
     <root>/<scene_id>/<name>_rgb.png          8-bit RGB panorama (2:1)
     <root>/<scene_id>/<name>_depth.png        16-bit depth, metres = value / 4000, 0 = missing
-    <root>/<scene_id>/<name>_semantic.png     optional: 8-bit class ids of omnidl.classes
+    <root>/<scene_id>/<name>_semantic.png     optional: 8-bit class ids of omnidl.classes (others: an error)
     <root>/scenes_<split>.txt                 optional: scene ids of a split, one per line
 
 Without ``scenes_<split>.txt`` every scene folder is used for every split (and a warning says so).
@@ -14,26 +14,21 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 from omnidl.classes import NUM_CLASSES
-from .paired import PairedPanoramas, PanoramaFiles, check_folder, check_size, drop_incomplete, to_tensor_labels
-from .readers import read_depth_png, read_raw, resize_labels
-from .robust import CorruptSampleError
+from .paired import PairedPanoramas, PanoramaFiles, check_folder, drop_incomplete, to_tensor_labels
+from .readers import read_depth_png, resize_labels
+from .validate import check_class_ids, read_image
 
 log = logging.getLogger("omnidl.data")
 DEPTH_SCALE = 4000.0
 
 
 def decode_class_png(path: Path, expect_wh, out_wh) -> torch.Tensor:
-    raw = read_raw(path, cv2.IMREAD_UNCHANGED)
-    if raw.ndim != 2:
-        raise CorruptSampleError(f"semantic map {path}: expected a single-channel PNG of class ids, got {raw.shape}")
-    check_size(raw, expect_wh, path, "semantic map")
-    labels = raw.astype(np.int64)
-    labels[labels >= NUM_CLASSES] = 0
+    raw = read_image(path, "semantic map", channels=1, dtypes=(np.uint8, np.uint16), size=expect_wh)
+    labels = check_class_ids(raw.astype(np.int64), path, "semantic map", NUM_CLASSES)
     return to_tensor_labels(resize_labels(labels, out_wh))
 
 

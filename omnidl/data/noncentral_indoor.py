@@ -31,6 +31,8 @@ from ..cameras import Equirectangular
 from ..geometry.rotations import UPRIGHT_TO_WORLD
 from .horizonnet_format import read_label_cor
 from .layout_targets import boundary_targets, corner_heat
+from .readers import rgb_to_tensor
+from .validate import DataValidationError, UnreadableFileError, check_range, invalid, load_npy, read_image, read_raw
 
 DEPTH_MAX = 10.0
 
@@ -53,6 +55,29 @@ def rc_from_name(name: str) -> float | None:
     return int(m.group(1)) / 1e4 if m else None
 
 
+def corners_from_label_cor_camera(cor: np.ndarray, camera: Any, camera_height: float = 1.6) -> np.ndarray:
+    """Camera-frame 3D corners ``(K, 2, 3)`` of ``label_cor`` pixels ``(2K, 2)`` through any panorama camera
+    (central or non-central): each floor pixel's ray meets the floor plane ``camera_height`` below the rig,
+    each ceiling pixel's ray the vertical line of its floor corner; the ceiling height is their mean.
+    Raises ``ValueError`` when a floor ray does not go down or a ceiling ray does not go up."""
+    c = np.asarray(cor, float).reshape(-1, 2, 2)
+    rays = camera.unproject(torch.from_numpy(c.reshape(-1, 2) + 0.5))
+    R = np.asarray(UPRIGHT_TO_WORLD, dtype=np.float64)
+    o = (rays.origin.double().numpy() @ R.T).reshape(-1, 2, 3)          # camera -> layout frame (z up)
+    d = (rays.direction.double().numpy() @ R.T).reshape(-1, 2, 3)
+    if np.any(d[:, 1, 2] >= 0) or np.any(d[:, 0, 2] <= 0):
+        raise ValueError("label_cor: every ceiling point must be above and every floor point below the horizon")
+    t = (-camera_height - o[:, 1, 2]) / d[:, 1, 2]
+    floor_xy = o[:, 1, :2] + t[:, None] * d[:, 1, :2]
+    b = d[:, 0, :2]
+    s_c = np.sum((floor_xy - o[:, 0, :2]) * b, 1) / np.maximum(np.sum(b * b, 1), 1e-12)
+    h_c = float(np.mean(o[:, 0, 2] + s_c * d[:, 0, 2]))
+    out = np.zeros((len(c), 2, 3))
+    out[:, :, :2] = floor_xy[:, None]
+    out[:, 0, 2], out[:, 1, 2] = h_c, -camera_height
+    return out @ R                                                      # layout -> camera frame
+
+
 class NonCentralIndoorDataset(torch.utils.data.Dataset):
     """Map-style dataset over ``root`` (see module docstring).
 
@@ -60,22 +85,42 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
         root: dataset folder.
         names: sample names to use (default: every ``img/*.png``), e.g. a split list.
         rc: rig radius in metres (default: from the file name, else error).
-        boundary_source: ``"label_ang"`` | ``"edges"`` (EM_gt, as scaledLayout) | ``"corners"``.
+        boundary_source: ``"label_ang"`` | ``"edges"`` (EM_gt, as scaledLayout) | ``"corners"`` (3D_gt through
+            the camera) | ``"label_cor"`` (the corner pixels through the camera, up to ``camera_height``).
         depth: also decode ``depth_coded``.
+        label_cor_only: read only ``img/`` and ``label_cor`` (``DataPython/label_cor/`` or ``label_cor/``):
+            the other folders are optional and not read; boundaries and ``corners_cam`` come from ``label_cor``
+            (``boundary_source="label_cor"``, metric up to the assumed ``camera_height``); no ``depth``/``edges``.
+        camera_height: assumed camera height (m) of the ``label_cor`` reconstruction.
+
+    Every file is validated (:mod:`omnidl.data.validate`): sizes against the image, ``depth_coded`` 24-bit
+    RGB (a grayscale one is refused), finite ``3D_gt``/``cam_pose``/``label_ang`` of the documented shapes,
+    ``label_cor`` inside the image. A bad file raises a :class:`~omnidl.data.robust.CorruptSampleError` naming
+    it (skipped with a warning in training).
     """
 
     def __init__(self, root: str | Path, names: list[str] | None = None, rc: float | None = None,
-                 boundary_source: str = "label_ang", depth: bool = True) -> None:
+                 boundary_source: str = "label_ang", depth: bool = True, label_cor_only: bool = False,
+                 camera_height: float = 1.6) -> None:
         self.root = Path(root)
-        if boundary_source not in ("label_ang", "edges", "corners"):
-            raise ValueError(f"boundary_source must be label_ang, edges or corners, got {boundary_source!r}")
+        if boundary_source not in ("label_ang", "edges", "corners", "label_cor"):
+            raise ValueError(f"boundary_source must be label_ang, edges, corners or label_cor, got {boundary_source!r}")
+        if not camera_height > 0:
+            raise ValueError(f"camera_height must be > 0 metres, got {camera_height}")
         img_dir = self.root / "img"
         if not img_dir.is_dir():
             raise FileNotFoundError(f"NonCentralIndoorDataset: {img_dir} not found")
         self.names = list(names) if names is not None else sorted(p.stem for p in img_dir.glob("*.png"))
         if not self.names:
             raise FileNotFoundError(f"NonCentralIndoorDataset: no images in {img_dir}")
+        self.label_cor_only = bool(label_cor_only)
+        if self.label_cor_only:
+            boundary_source, depth = "label_cor", False
+            if not any((self.root / d).is_dir() for d in ("DataPython/label_cor", "label_cor")):
+                raise FileNotFoundError(f"NonCentralIndoorDataset: {self.root} has no DataPython/label_cor/ or "
+                                        "label_cor/ folder (label_cor_only=True needs one)")
         self.rc, self.boundary_source, self.depth = rc, boundary_source, depth
+        self.camera_height = float(camera_height)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -90,47 +135,69 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
     def _file(self, *parts: str) -> Path:
         p = self.root.joinpath(*parts)
         if not p.exists():
-            raise FileNotFoundError(f"NonCentralIndoorDataset: missing file {p}")
+            raise UnreadableFileError(f"NonCentralIndoorDataset: missing file {p}")
         return p
 
+    def _label_cor_file(self, name: str) -> Path:
+        for d in (("DataPython", "label_cor"), ("label_cor",)):
+            p = self.root.joinpath(*d, f"{name}.txt")
+            if p.exists():
+                return p
+        return self._file("DataPython", "label_cor", f"{name}.txt")
+
     def __getitem__(self, i: int) -> dict:
-        import cv2
         from ..cameras import build
         name = self.names[i]
-        bgr = cv2.imread(str(self._file("img", f"{name}.png")), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise IOError(f"cannot read {self.root / 'img' / (name + '.png')}")
+        img_path = self._file("img", f"{name}.png")
+        bgr = read_raw(img_path, 1, "image")                              # IMREAD_COLOR; unreadable -> named error
         H, W = bgr.shape[:2]
         rc = self._rc(name)
         cam = build({"type": "noncentral_pano", "width": W, "height": H, "rc": rc})
-        out: dict[str, Any] = {"image": torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float() / 255}
+        out: dict[str, Any] = {"image": rgb_to_tensor(bgr)}
         if self.depth:
-            d = cv2.imread(str(self._file("depth_coded", f"{name}.png")), cv2.IMREAD_COLOR)
-            out["depth"] = torch.from_numpy(decode_depth(d[:, :, ::-1]))[None]       # BGR -> RGB before decoding
-        gt = np.load(self._file("DataPython", "3D_gt", f"{name}.npy")).astype(float)
-        pose = np.load(self._file("DataPython", "cam_pose", f"{name}.npy")).astype(float).reshape(1, 3)
-        if gt.ndim != 2 or gt.shape[1] != 3 or len(gt) % 2:
-            raise ValueError(f"{name}: 3D_gt must be (2N, 3) (N ceiling then N floor corners), got {gt.shape}")
-        n = len(gt) // 2
-        lay = dataset_to_layout(gt - pose)
-        corners = np.stack([lay[:n], lay[n:]], 1)                      # (N, 2, 3) layout frame
-        corners_cam = corners @ np.asarray(UPRIGHT_TO_WORLD)             # -> OpenCV camera frame (R^T)
+            path = self._file("depth_coded", f"{name}.png")
+            coded = read_image(path, "depth_coded", channels=3, dtypes=(np.uint8,), size=(W, H), convert=False)
+            out["depth"] = torch.from_numpy(decode_depth(coded))[None]
+        cor_path = self._label_cor_file(name)
+        cor = read_label_cor(cor_path, W, H)
+        if self.label_cor_only or self.boundary_source == "label_cor":
+            try:
+                corners_cam = corners_from_label_cor_camera(cor, cam, self.camera_height)
+            except ValueError as e:
+                raise DataValidationError(f"{cor_path}: {e}") from e
+            n = len(corners_cam)
+        else:
+            gt_path = self._file("DataPython", "3D_gt", f"{name}.npy")
+            gt = load_npy(gt_path, "3D_gt", shape=(None, 3))
+            if len(gt) % 2 or len(gt) == 0:
+                raise invalid(gt_path, "3D_gt", f"of shape {gt.shape}", "shape (2N, 3): N ceiling then N floor corners")
+            pose = load_npy(self._file("DataPython", "cam_pose", f"{name}.npy"), "cam_pose").reshape(-1)
+            if pose.size != 3:
+                raise invalid(self.root / "DataPython" / "cam_pose" / f"{name}.npy", "cam_pose",
+                              f"{pose.size} values", "3 values (x, y, z of the camera)")
+            n = len(gt) // 2
+            lay = dataset_to_layout(gt - pose.reshape(1, 3))
+            corners = np.stack([lay[:n], lay[n:]], 1)                  # (N, 2, 3) layout frame
+            corners_cam = corners @ np.asarray(UPRIGHT_TO_WORLD)         # -> OpenCV camera frame (R^T)
         out["corners_cam"] = torch.from_numpy(corners_cam).float()
         out["num_walls"] = torch.tensor(n)
-        cor = read_label_cor(self._file("DataPython", "label_cor", f"{name}.txt"))
         out["corner_heat"] = corner_heat(cor[0::2, 0] + 0.5, W)
-        em = cv2.imread(str(self._file("EM_gt", f"{name}.png")), cv2.IMREAD_GRAYSCALE)
-        out["edges"] = torch.from_numpy((em >= 250).astype(np.float32))[None]
+        em = None
+        if not self.label_cor_only:
+            em_path = self._file("EM_gt", f"{name}.png")
+            em = read_image(em_path, "EM_gt", channels=1, dtypes=(np.uint8,), size=(W, H)) >= 250
+            out["edges"] = torch.from_numpy(em.astype(np.float32))[None]
         if self.boundary_source == "label_ang":
-            ang = np.load(self._file("DataPython", "label_ang", f"{name}.npy")).astype(float)
+            ang_path = self._file("DataPython", "label_ang", f"{name}.npy")
+            ang = load_npy(ang_path, "label_ang", shape=(3, None))
+            check_range(ang[1:], ang_path, "label_ang elevation", -math.pi / 2, math.pi / 2)
             out["boundary"], out["boundary_valid"] = self._from_label_ang(ang, W, H, name)
         elif self.boundary_source == "edges":
-            out["boundary"], out["boundary_valid"] = self._from_edges(em >= 250)
+            out["boundary"], out["boundary_valid"] = self._from_edges(em)
         else:
             out["boundary"], out["boundary_valid"] = boundary_targets(corners_cam, cam)
-        out["meta"] = {"name": name, "rig_radius": rc, "camera": cam.to_config()}
+        out["meta"] = {"name": name, "file": str(img_path), "rig_radius": rc, "camera": cam.to_config()}
         return out
-
     @staticmethod
     def _from_label_ang(ang: np.ndarray, W: int, H: int, name: str):
         if ang.ndim != 2 or ang.shape[0] != 3:

@@ -11,7 +11,7 @@ import torch
 from torch.utils.data import Dataset
 
 from .readers import read_raw, rgb_to_tensor
-from .robust import CorruptSampleError
+from .validate import check_size  # noqa: F401  (re-exported: the loaders import it from here)
 
 log = logging.getLogger("omnidl.data")
 
@@ -93,12 +93,6 @@ class PairedPanoramas(Dataset):
             sample["semantic"] = self.decode_semantic(s.semantic, wh, out_wh)
         sample["meta"] = {"name": s.name, "image": str(s.image), "index": int(index), "dataset": self.what}
         return sample
-
-
-def check_size(arr: np.ndarray, expect_wh: tuple[int, int], path: Path, what: str) -> None:
-    if (arr.shape[1], arr.shape[0]) != tuple(expect_wh):
-        raise CorruptSampleError(f"{what} {path} is {arr.shape[1]}x{arr.shape[0]}, expected "
-                                 f"{expect_wh[0]}x{expect_wh[1]} (the size of its RGB image)")
 
 
 def to_tensor_labels(labels: np.ndarray) -> torch.Tensor:

@@ -7,23 +7,9 @@ import cv2
 import numpy as np
 import torch
 
-from .robust import CorruptSampleError
+from .validate import check_size, read_image, read_raw
 
-
-def read_raw(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """``cv2.imread`` that raises :class:`CorruptSampleError` for missing, empty or undecodable files."""
-    path = Path(path)
-    if not path.is_file():
-        raise CorruptSampleError(f"missing file {path}")
-    if path.stat().st_size == 0:
-        raise CorruptSampleError(f"empty file {path}")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, flags)
-    if img is None:
-        raise CorruptSampleError(f"cannot decode image {path} (truncated or not an image?)")
-    if path.suffix.lower() == ".png" and not data[-12:].tobytes().endswith(b"IEND\xaeB`\x82"):
-        raise CorruptSampleError(f"truncated PNG {path} (no IEND chunk)")
-    return img
+__all__ = ["read_raw", "read_rgb", "rgb_to_tensor", "read_depth_png", "resize_labels"]
 
 
 def read_rgb(path: str | Path, size: tuple[int, int] | None = None) -> torch.Tensor:
@@ -46,17 +32,17 @@ def read_depth_png(path: str | Path, scale: float, invalid: int | None = None,
                    size: tuple[int, int] | None = None, expect: tuple[int, int] | None = None) -> torch.Tensor:
     """16-bit depth PNG -> ``(1, H, W)`` float32 metres (``value / scale``; ``invalid`` and 0 -> 0).
 
+    Only 16-bit files are accepted: an 8-bit PNG cannot hold the range (it would load as centimetres), so it is
+    a :class:`~omnidl.data.validate.DataValidationError` naming the file.
+
     ``expect=(W, H)`` checks the stored size first (a depth map of the wrong size is an error naming both
     sizes); ``size=(W, H)`` then resizes with nearest neighbour (never blends valid and invalid depth).
     """
-    raw = read_raw(path, cv2.IMREAD_UNCHANGED)
+    raw = read_image(path, "depth map", channels=None, dtypes=(np.uint16,))     # an 8-bit depth PNG is refused
     if raw.ndim == 3:
         raw = raw[..., 0]
-    if raw.dtype not in (np.uint16, np.uint8, np.float32):
-        raise CorruptSampleError(f"depth map {path}: unexpected pixel type {raw.dtype} (expected 16-bit PNG)")
-    if expect is not None and (raw.shape[1], raw.shape[0]) != tuple(expect):
-        raise CorruptSampleError(f"depth map {path} is {raw.shape[1]}x{raw.shape[0]}, expected {expect[0]}x{expect[1]} "
-                                 "(the size of its RGB image)")
+    if expect is not None:
+        check_size(raw, expect, path, "depth map")
     depth = raw.astype(np.float32)
     bad = depth <= 0
     if invalid is not None:

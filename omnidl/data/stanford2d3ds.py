@@ -7,7 +7,8 @@ Expected layout (as distributed; ``area_5a``/``area_5b`` are the two halves of a
     <root>/area_1/pano/semantic/camera_<id>_<room>_frame_equirectangular_domain_semantic.png
     <root>/semantic_labels.json        (or <root>/assets/semantic_labels.json, or labels_json=PATH)
 
-Formats: depth is a 16-bit PNG in 1/512 m, 65535 = missing (range along the ray, as omnidl stores it).
+Formats: depth is a 16-bit PNG in 1/512 m, 65535 = missing (range along the ray, as omnidl stores it; an 8-bit
+depth PNG is refused).
 A semantic PNG encodes an index into ``semantic_labels.json`` as ``R * 65536 + G * 256 + B``; the label
 string ``<class>_<instance>_<room>_<n>_<m>`` maps to our classes by its first token (``<UNK>`` and indices
 outside the list, e.g. the ``#0D0D0D`` of missing pixels, map to 0 = unknown).
@@ -19,14 +20,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 from omnidl.classes import CLASS_ID
-from .paired import PairedPanoramas, PanoramaFiles, check_folder, check_size, drop_incomplete, to_tensor_labels
-from .readers import read_depth_png, read_raw, resize_labels
-from .robust import CorruptSampleError
+from .paired import PairedPanoramas, PanoramaFiles, check_folder, drop_incomplete, to_tensor_labels
+from .readers import read_depth_png, resize_labels
+from .validate import read_image
 
 DEPTH_SCALE = 512.0
 DEPTH_MISSING = 65535
@@ -60,11 +60,8 @@ def label_lut(labels_json: Path) -> np.ndarray:
 
 
 def decode_semantic(path: Path, lut: np.ndarray, expect_wh, out_wh) -> torch.Tensor:
-    raw = read_raw(path, cv2.IMREAD_UNCHANGED)
-    if raw.ndim != 3 or raw.shape[2] < 3 or raw.dtype != np.uint8:
-        raise CorruptSampleError(f"semantic map {path}: expected an 8-bit RGB PNG, got shape {raw.shape} {raw.dtype}")
-    check_size(raw, expect_wh, path, "semantic map")
-    b, g, r = raw[..., 0].astype(np.int64), raw[..., 1].astype(np.int64), raw[..., 2].astype(np.int64)
+    rgb = read_image(path, "semantic map", channels=3, dtypes=(np.uint8,), size=expect_wh, convert=False)
+    r, g, b = rgb[..., 0].astype(np.int64), rgb[..., 1].astype(np.int64), rgb[..., 2].astype(np.int64)
     index = r * 65536 + g * 256 + b
     labels = np.where(index < len(lut), lut[np.minimum(index, len(lut) - 1)], 0)
     return to_tensor_labels(resize_labels(labels, out_wh))

@@ -73,7 +73,7 @@ class SyntheticCameraDataset(Dataset):
             path = self.cache_dir / f"{self.split}_{index:07d}.pt"
             if path.exists():
                 try:
-                    return torch.load(path, weights_only=False)
+                    return torch.load(path, weights_only=True)   # a cache file never runs code
                 except Exception:  # noqa: BLE001 - a corrupt cache file is re-rendered
                     pass
         out = render_sample(self.camera, self.seed, self.split, index, rotation=self.rotation,

@@ -73,3 +73,62 @@ def test_label_cor_format_and_central_folder(tmp_path):
     for x, y in cor:
         j = int(round(x))
         assert abs(float(s["boundary"][0 if y < 128 else 1, j]) - (y + 0.5)) < 3
+
+
+def test_label_cor_only_mode_matches_the_full_labels(engine_sample, tmp_path):
+    """issue 15: image + label_cor only (the other folders absent); with the true camera height the corners
+    recovered through the non-central camera are the 3D_gt ones and the boundaries those of label_ang."""
+    import shutil
+    from omnidl.synth.export import sample_name, write_sample
+    name = sample_name("noncentral", 0, 1.0)
+    write_sample(tmp_path, "noncentral", name, engine_sample)
+    full = NonCentralIndoorDataset(tmp_path)[0]
+    height = float(full["corners_cam"][0, 1, 1])                     # floor corners: camera y (down) = height
+    for d in ("depth_coded", "EM_gt", "DataPython/3D_gt", "DataPython/cam_pose", "DataPython/label_ang"):
+        shutil.rmtree(tmp_path / d)
+    with pytest.raises(OSError, match=r"missing file .*depth_coded"):
+        NonCentralIndoorDataset(tmp_path)[0]                            # the full mode still needs every file
+    ds = NonCentralIndoorDataset(tmp_path, label_cor_only=True, camera_height=height)
+    s = ds[0]
+    assert "depth" not in s and "edges" not in s and s["image"].shape == full["image"].shape
+    assert torch.equal(s["corner_heat"], full["corner_heat"]) and int(s["num_walls"]) == int(full["num_walls"])
+    got, want = s["corners_cam"].reshape(-1, 3), full["corners_cam"].reshape(-1, 3)
+    assert torch.cdist(got, want).min(1).values.max() < 0.05             # same corners (label_cor has 2 decimals)
+    v = s["boundary_valid"] & full["boundary_valid"]
+    assert v.float().mean() > 0.95 and (s["boundary"][v] - full["boundary"][v]).abs().max() < 0.2
+    # a HorizonNet-style root/label_cor/ folder works too
+    (tmp_path / "DataPython" / "label_cor").rename(tmp_path / "label_cor")
+    assert torch.equal(NonCentralIndoorDataset(tmp_path, label_cor_only=True, camera_height=height)[0]["corner_heat"],
+                       s["corner_heat"])
+
+
+def test_skip_corrupt_counts_every_skip_and_whole_passes(tmp_path):
+    """SkipCorrupt: None + a warning per skip (unchanged), but every occurrence counts towards max_skips and a
+    whole pass of corrupt samples stops with an error naming the files (it looped forever before)."""
+    from omnidl.data.robust import CorruptSampleError, SkipCorrupt, TooManyCorruptSamples
+
+    class Items(torch.utils.data.Dataset):
+        def __init__(self, bad):
+            self.bad = bad
+
+        def __len__(self):
+            return 4
+
+        def __getitem__(self, i):
+            if i in self.bad:
+                raise CorruptSampleError(f"cannot decode image f{i}.png")
+            return {"i": i}
+
+    healthy = SkipCorrupt(Items({1}), max_skips=5)             # one bad file, read for many epochs: goes on
+    for _ in range(10):
+        assert [healthy[i] for i in range(4)] == [{"i": 0}, None, {"i": 2}, {"i": 3}]
+    assert healthy.skip_count == 10 and healthy.skipped == {1}
+    mostly = SkipCorrupt(Items({1, 2, 3}), max_skips=5)        # 3 distinct bad files never reached max_skips before
+    assert [mostly[i] for i in range(4)] == [{"i": 0}, None, None, None]
+    assert [mostly[i] for i in range(3)] == [{"i": 0}, None, None]
+    with pytest.raises(TooManyCorruptSamples, match=r"6 corrupt samples skipped \(max_skips=5\) against 2 good"):
+        mostly[3]
+    every = SkipCorrupt(Items({0, 1, 2, 3}))
+    assert [every[i] for i in range(3)] == [None, None, None]
+    with pytest.raises(TooManyCorruptSamples, match=r"all 4 samples read in a row.*f3\.png"):
+        every[3]

@@ -85,3 +85,26 @@ def test_generic_camera_dataset_and_errors(tmp_path):
     tilt = np.array([[1, 0, 0], [0, np.cos(0.2), -np.sin(0.2)], [0, np.sin(0.2), np.cos(0.2)]])
     s = SyntheticPanoramaDataset("equirect", 64, 32, length=1, rotation=tilt)[0]
     assert torch.allclose(s["rotation"].double(), torch.as_tensor(tilt), atol=1e-6)
+
+
+class _Payload:
+    """An object whose unpickling would run code (writes a flag file)."""
+
+    def __init__(self, flag):
+        self.flag = str(flag)
+
+    def __reduce__(self):
+        return (exec, (f"open({self.flag!r}, 'w').write('ran')",))
+
+
+def test_cache_never_unpickles_code(tmp_path):
+    """issue 14: the cache is read with torch.load(weights_only=True): a planted .pt file cannot run code; it is
+    re-rendered instead, and a genuine cached sample still loads."""
+    ds = SyntheticPanoramaDataset("equirect", 32, 16, length=1, cache_dir=tmp_path / "c")
+    fresh = ds[0]
+    (cached,) = list((tmp_path / "c").rglob("*.pt"))
+    assert _equal(torch.load(cached, weights_only=True), fresh)
+    flag = tmp_path / "flag.txt"
+    torch.save({"image": _Payload(flag)}, cached)
+    again = SyntheticPanoramaDataset("equirect", 32, 16, length=1, cache_dir=tmp_path / "c")[0]
+    assert not flag.exists() and _equal(again, fresh)
