@@ -2,17 +2,21 @@
 
     python -m omnidl.apps.reproject --src pano.png --dst-camera configs/camera/kb_f195.yaml --out f.png \
         [--src-camera cam.yaml] [--size-policy error|pad|crop|scale] [--rotation ROLL,PITCH,YAW]
-        [--mode bilinear|nearest] [--mask-out valid.png]
+        [--mode bilinear|masked|nearest] [--depth] [--invalid VALUE] [--mask-out valid.png]
 
 * ``--src-camera``/``--dst-camera`` take any spec of :func:`omnidl.cameras.resolve_camera` (a camera
   YAML file, a calibration file, a ``configs/camera`` name); ``--src-camera`` defaults to a full
-  equirectangular camera of the image's size. A source camera calibrated at another size than the
+  equirectangular camera of the image's size, which needs a 2:1 image (``W = 2 H``; any other source
+  needs its ``--src-camera``). A source camera calibrated at another size than the
   image is used on the image uniformly resized; any other size is an error unless ``--size-policy``
   says how the image relates to the calibrated one (``pad``/``crop`` right-bottom, ``scale``).
 * ``--rotation`` (degrees, :func:`omnidl.geometry.rotations.euler_to_matrix` convention) is
   ``R_src_dst``: ``0,30,0`` renders a camera looking 30° above the source's optical axis.
 * Images are read and written with OpenCV (8/16-bit or float, any channel count); the
   output keeps the input's dtype; pixels without a source are 0.
+* ``--depth`` says the source is a depth (range) map whose 0 means "no measurement": it is sampled with
+  ``--mode masked`` (bilinear over the valid pixels only, so holes never blend into valid ranges) unless
+  ``--mode nearest`` is given. ``--invalid VALUE`` does the same for another "no data" value.
 """
 from __future__ import annotations
 
@@ -75,25 +79,44 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def reproject_array(img: np.ndarray, src_camera: Camera, dst_camera: Camera, rotation: torch.Tensor | None = None,
-                    mode: str = "bilinear") -> tuple[np.ndarray, np.ndarray]:
-    """``(H, W)`` or ``(H, W, C)`` numpy image -> (image of the same dtype, ``(Hd, Wd)`` bool valid)."""
+                    mode: str = "bilinear", invalid: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, W)`` or ``(H, W, C)`` numpy image -> (image of the same dtype, ``(Hd, Wd)`` bool valid).
+
+    ``mode="masked"`` (or ``invalid`` given with ``bilinear``) interpolates over the pixels that are not
+    ``invalid`` (default 0) only, for depth maps; see :func:`omnidl.geometry.reproject`."""
     h, w = img.shape[:2]
     if (src_camera.width, src_camera.height) != (w, h):
         raise CLIError(f"the source image is {w}x{h} but the source camera is {src_camera.width}x{src_camera.height}")
     x = torch.from_numpy(np.ascontiguousarray(img))
     x = x.unsqueeze(-1) if x.dim() == 2 else x
     x = x.permute(2, 0, 1).unsqueeze(0)
-    if mode == "bilinear":
-        x = x.to(torch.float32)
-    out, valid = reproject(x, src_camera, dst_camera, rotation, mode=mode)
+    if mode != "nearest":
+        x = x.to(torch.float64 if img.dtype == np.float64 else torch.float32)
+    out, valid = reproject(x, src_camera, dst_camera, rotation, mode=mode, invalid=invalid)
     out = out[0].permute(1, 2, 0)
-    if mode == "bilinear" and np.issubdtype(img.dtype, np.integer):
+    if mode != "nearest" and np.issubdtype(img.dtype, np.integer):
         info = np.iinfo(img.dtype)
         out = out.round().clamp(info.min, info.max)
     res = out.numpy().astype(img.dtype)
     if img.ndim == 2:
         res = res[..., 0]
     return res, valid[0, 0].numpy()
+
+
+def check_output_path(path: str, what: str = "--out") -> None:
+    """``CLIError`` unless OpenCV can write an image named ``path`` (checked before any work)."""
+    import cv2
+    if Path(path).suffix and not cv2.haveImageWriter(str(path)):  # no suffix: written as PNG
+        raise CLIError(f"{what} {path!r}: OpenCV has no image writer for the suffix {Path(path).suffix!r}; use "
+                       ".png, .tif, .exr, .jpg, ...")
+
+
+def default_panorama_camera(width: int, height: int, src: str) -> Camera:
+    """The full equirectangular camera of a ``width x height`` source, which must be 2:1."""
+    if width != 2 * height:
+        raise CLIError(f"source image {src!r} is {width}x{height} (W x H); a full equirectangular panorama is 2:1 "
+                       f"(W = 2 H). Give its camera with --src-camera (e.g. a configs/camera YAML)")
+    return Equirectangular(width=width, height=height)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -108,17 +131,30 @@ def main(argv: list[str] | None = None) -> int:
                     help="how the source image relates to a source camera calibrated at another size "
                          "(default: error)")
     ap.add_argument("--rotation", default=None, help="R_src_dst as 'roll,pitch,yaw' in degrees")
-    ap.add_argument("--mode", default="bilinear", choices=["bilinear", "nearest"])
+    ap.add_argument("--mode", default=None, choices=["bilinear", "masked", "nearest"],
+                    help="interpolation (default: bilinear; masked with --depth or --invalid)")
+    ap.add_argument("--depth", action="store_true", help="the source is a depth map whose 0 means no measurement "
+                                                         "(interpolated with --mode masked)")
+    ap.add_argument("--invalid", type=float, default=None, help="the 'no data' value of the source (implies "
+                                                                "--mode masked unless --mode nearest)")
     ap.add_argument("--mask-out", default=None, help="also write the valid mask (0/255 PNG)")
     args = ap.parse_args(argv)
     try:
+        check_output_path(args.out)
+        if args.mask_out:
+            check_output_path(args.mask_out, "--mask-out")
         img = read_image(args.src)
         h, w = img.shape[:2]
         src_cam = (load_camera(args.src_camera, w, h, args.size_policy) if args.src_camera
-                   else Equirectangular(width=w, height=h))
+                   else default_panorama_camera(w, h, args.src))
         dst_cam = load_camera(args.dst_camera)
         rotation = parse_rotation(args.rotation)
-        out, valid = reproject_array(img, src_cam, dst_cam, rotation, args.mode)
+        invalid = args.invalid if args.invalid is not None else (0.0 if args.depth else None)
+        mode = args.mode or ("masked" if invalid is not None else "bilinear")
+        if mode == "bilinear" and invalid is not None:
+            raise CLIError("--mode bilinear blends the invalid value into valid pixels; with --depth/--invalid use "
+                           "--mode masked (the default) or nearest")
+        out, valid = reproject_array(img, src_cam, dst_cam, rotation, mode, invalid)
         try:
             atomic_imwrite(args.out, out)
             if args.mask_out:

@@ -23,11 +23,17 @@ input tensor.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
+import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple
 
 import torch
 from torch import Tensor
+
+from .validate import Domain, check_domains, check_size, check_types, family_name
 
 
 class Rays(NamedTuple):
@@ -83,6 +89,32 @@ def normalize(x: Tensor, dim: int = -1) -> Tensor:
     return x / torch.where(n > 0, n, torch.ones_like(n))
 
 
+def _finite_where_invalid(x: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """``valid & all(isfinite(x), -1)`` and ``x`` with its non-finite entries set to 0 (``x (..., k)``)."""
+    fin = torch.isfinite(x)
+    return torch.where(fin, x, torch.zeros((), dtype=x.dtype, device=x.device)), valid & fin.all(-1)
+
+
+def _finite_project(fn):
+    @functools.wraps(fn)
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        uv, valid = fn(self, points)
+        return _finite_where_invalid(uv, valid)
+    project._finite = True  # type: ignore[attr-defined]
+    return project
+
+
+def _finite_unproject(fn):
+    @functools.wraps(fn)
+    def unproject(self, uv: Tensor) -> Rays:
+        rays = fn(self, uv)
+        origin, valid = _finite_where_invalid(rays.origin, rays.valid)
+        direction, valid = _finite_where_invalid(rays.direction, valid)
+        return Rays(origin, direction, valid)
+    unproject._finite = True  # type: ignore[attr-defined]
+    return unproject
+
+
 @dataclass(frozen=True)
 class Camera:
     """Base class of every projection model.
@@ -97,9 +129,35 @@ class Camera:
     central: ClassVar[bool] = True
     #: registry name, set by ``register_camera``
     name: ClassVar[str] = ""
+    #: parameter domains (field -> :class:`~omnidl.cameras.validate.Domain`) beyond "finite"; see
+    #: :mod:`omnidl.cameras.validate`
+    domains: ClassVar[Mapping[str, Domain]] = {}
 
     width: int
     height: int
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        check_domains(self)
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        # a family's own __post_init__ runs between the shared type/finiteness check and the domain check,
+        # so every subclass is validated by the one layer in omnidl.cameras.validate; its project/unproject
+        # are wrapped so that non-finite results are invalid and invalid results finite (the contract above)
+        super().__init_subclass__(**kwargs)
+        for attr, wrap in (("project", _finite_project), ("unproject", _finite_unproject)):
+            fn = cls.__dict__.get(attr)
+            if fn is not None and not getattr(fn, "_finite", False):
+                setattr(cls, attr, wrap(fn))
+        own = cls.__dict__.get("__post_init__")
+        if own is not None and not getattr(own, "_validated", False):
+            @functools.wraps(own)
+            def __post_init__(self, _own=own) -> None:
+                check_types(self)
+                _own(self)
+                check_domains(self)
+            __post_init__._validated = True  # type: ignore[attr-defined]
+            cls.__post_init__ = __post_init__  # type: ignore[method-assign]
 
     # -- the interface -----------------------------------------------------------------
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
@@ -145,7 +203,8 @@ class Camera:
         coordinate is divided by ``s`` (thesis Eq. 7.3: ``f_k = f (W_FM - p_w/s) / W_c
         = f / s``, the same for the principal point). Padded areas are invalid.
         """
-        return ResizedCamera(base=self, width=int(width), height=int(height),
+        width, height, pad_right, pad_bottom = _resize_args(self, width, height, pad_right, pad_bottom)
+        return ResizedCamera(base=self, width=width, height=height,
                              scale_x=width / (self.width + pad_right),
                              scale_y=height / (self.height + pad_bottom))
 
@@ -197,11 +256,23 @@ class Camera:
         return torch.cat(out)[:n]
 
 
+def _resize_args(camera: Camera, width: Any, height: Any, pad_right: Any, pad_bottom: Any) -> tuple[Any, ...]:
+    """Checked ``resized()`` arguments: sizes positive integers; pads finite (negative crops) leaving >= 1 pixel."""
+    who = f"{family_name(camera)}: resized({width!r}, {height!r})"
+    w, h = check_size(who, width, height)
+    for key, pad, side in (("pad_right", pad_right, camera.width), ("pad_bottom", pad_bottom, camera.height)):
+        if isinstance(pad, bool) or not isinstance(pad, numbers.Real) or not math.isfinite(pad) or side + pad < 1:
+            raise ValueError(f"{who}: {key} must be a finite number of pixels leaving at least 1 pixel of the "
+                             f"{side}-pixel side, got {pad!r}")
+    return w, h, pad_right, pad_bottom
+
+
 @dataclass(frozen=True)
 class ResizedCamera(Camera):
     """``base`` seen on a resized (and possibly padded) image: pixel coordinates scale by ``(scale_x, scale_y)``."""
 
     name: ClassVar[str] = "resized"
+    domains: ClassVar[Mapping[str, Domain]] = {"scale_x": Domain(0.0), "scale_y": Domain(0.0)}
     base: Camera = None  # type: ignore[assignment]
     scale_x: float = 1.0
     scale_y: float = 1.0
@@ -218,6 +289,10 @@ class ResizedCamera(Camera):
     def panoramic(self) -> bool:  # type: ignore[override]
         return self.wraps_horizontally or self.base.panoramic
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.base, Camera):
+            raise ValueError(f"resized camera: base must be a Camera, got {self.base!r}")
+
     def _scale(self, like: Tensor) -> Tensor:
         return torch.tensor([self.scale_x, self.scale_y], dtype=like.dtype, device=like.device)
 
@@ -231,9 +306,10 @@ class ResizedCamera(Camera):
         return rays._replace(valid=rays.valid & in_image(uv, self.width, self.height))
 
     def resized(self, width: int, height: int, pad_right: int = 0, pad_bottom: int = 0) -> Camera:
+        width, height, pad_right, pad_bottom = _resize_args(self, width, height, pad_right, pad_bottom)
         sx = width / (self.width + pad_right)
         sy = height / (self.height + pad_bottom)
-        return ResizedCamera(base=self.base, width=int(width), height=int(height),
+        return ResizedCamera(base=self.base, width=width, height=height,
                              scale_x=self.scale_x * sx, scale_y=self.scale_y * sy)
 
     @classmethod

@@ -26,13 +26,16 @@ y down, z along the mirror axis towards the scene in the image centre). The thes
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
+from .validate import NONNEGATIVE, POSITIVE, Domain
 
 
 def _distort(x: Tensor, y: Tensor, k1: float, k2: float, p1: float, p2: float) -> tuple[Tensor, Tensor]:
@@ -63,6 +66,7 @@ class Unified(Camera):
     ``k1, k2, p1, p2`` (OpenCV's ``D``).
     """
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "xi": NONNEGATIVE}
     xi: float = 1.0
     fx: float = 1.0
     fy: float = 1.0
@@ -195,6 +199,7 @@ class Catadioptric(Camera):
     ``xi`` and focal lengths ``-eta * (fx, fy)`` (see :attr:`as_unified`).
     """
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "p": POSITIVE, "d": NONNEGATIVE}
     mirror: str = "para"
     d: float = 0.0
     p: float = 0.05

@@ -34,19 +34,23 @@ put the centre of pixel 0 at 0, so their ``cx, cy`` gain ``+0.5`` here.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
+from .validate import POSITIVE, Domain, between
 
 
 @dataclass(frozen=True)
 class DoubleSphere(Camera):
     """Double Sphere camera (central). Fields ``fx, fy, cx, cy`` (pixels), ``xi``, ``alpha`` in ``[0, 1]``."""
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "alpha": between(0.0, 1.0)}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0

@@ -28,19 +28,23 @@ calibrations put the centre of pixel 0 at 0, so their ``cx, cy`` gain ``+0.5`` h
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
+from .validate import POSITIVE, Domain, between
 
 
 @dataclass(frozen=True)
 class EUCM(Camera):
     """EUCM camera (central). Fields ``fx, fy, cx, cy`` (pixels), ``alpha`` in ``[0, 1]``, ``beta > 0``."""
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "alpha": between(0.0, 1.0), "beta": POSITIVE}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0

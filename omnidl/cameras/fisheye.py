@@ -20,13 +20,16 @@ circle ``h(max_fov / 2)``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
+from .validate import POSITIVE, Domain, between
 
 LENSES = ("equiangular", "stereographic", "orthogonal", "equisolid")
 #: largest angle from the axis each lens can represent (radians)
@@ -84,6 +87,7 @@ class Fisheye(Camera):
     ``max_fov`` (full field of view in radians; rays with ``phi > max_fov/2`` are invalid).
     """
 
+    domains: ClassVar[Mapping[str, Domain]] = {"f": POSITIVE, "max_fov": between(0.0, 2 * math.pi, "(]", "in (0, 2*pi] radians")}
     f: float = 100.0
     cx: float = 0.0
     cy: float = 0.0

@@ -29,7 +29,9 @@ implicit-function gradients. With ``p = s = 0`` and ``k4 = k5 = 0`` this is
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -39,12 +41,14 @@ from .registry import register_camera
 from .distortion import (pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian,
                          undistort_plane)
 from .solvers import newton_polish, polyval, solve_increasing
+from .validate import POSITIVE, Domain, between
 
 
 @dataclass(frozen=True)
 class Fisheye624(Camera):
     """Fisheye624 / RAD_TAN_THIN_PRISM_FISHEYE camera (central). ``max_fov`` is the full field of view in radians."""
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "max_fov": between(0.0, 2 * math.pi, "(]", "in (0, 2*pi] radians")}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0

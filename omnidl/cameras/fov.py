@@ -23,19 +23,23 @@ evaluates the closed form, which is accurate for every ``omega > 0``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
+from .validate import POSITIVE, Domain, between
 
 
 @dataclass(frozen=True)
 class FOVCamera(Camera):
     """FOV camera (central). Fields ``fx, fy, cx, cy`` (pixels) and ``omega`` in ``[0, pi)`` radians."""
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "omega": between(0.0, math.pi, "[)", "in [0, pi) radians")}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0

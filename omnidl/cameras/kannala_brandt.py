@@ -24,7 +24,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -32,6 +32,7 @@ from torch import Tensor
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import construct, register_camera
 from .solvers import newton_polish, polyval, solve_increasing
+from .validate import POSITIVE, Domain, between
 
 KB_FILE_FIELDS = ("cx", "cy", "fx", "fy", "width", "height", "fov_deg", "k1", "k2", "k3", "k4")
 
@@ -44,8 +45,8 @@ def read_kb_calibration(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         text = path.read_text()
-    except OSError as e:
-        raise ValueError(f"Kannala-Brandt calibration file {str(path)!r} cannot be read: {e}") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"Kannala-Brandt calibration file {str(path)!r} cannot be read as text: {e}") from e
     try:
         vals = [float(t) for t in text.replace(",", " ").split()]
     except ValueError as e:
@@ -66,6 +67,7 @@ def read_kb_calibration(path: str | Path) -> dict[str, Any]:
 class KannalaBrandt(Camera):
     """Kannala–Brandt camera (central). ``max_fov`` is the full field of view in radians."""
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "max_fov": between(0.0, 2 * math.pi, "(]", "in (0, 2*pi] radians")}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0
@@ -155,9 +157,13 @@ class KannalaBrandt(Camera):
         """Fields, or ``calib_file`` (KB text format, see module doc) plus optional field overrides."""
         params = dict(params)
         path = params.pop("calib_file", None)
-        if path is not None:
-            params = {**read_kb_calibration(path), **params}
-        return construct(cls, params)
+        if path is None:
+            return construct(cls, params)
+        params = {**read_kb_calibration(path), **params}
+        try:
+            return construct(cls, params)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"Kannala-Brandt calibration file {str(path)!r}: {e}") from e
 
     @classmethod
     def from_file(cls, path: str | Path) -> "KannalaBrandt":

@@ -26,7 +26,9 @@ Occlusion by the camera body or by the mirror itself is not modelled.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -34,6 +36,7 @@ from torch import Tensor
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import register_camera
 from .solvers import bracketed_root, newton_polish
+from .validate import POSITIVE, Domain, between
 
 MIRRORS = ("conical", "spherical")
 
@@ -49,6 +52,7 @@ class NonCentralCatadioptric(Camera):
 
     central = False
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE, "z_m": POSITIVE, "rim_radius": POSITIVE, "r_s": POSITIVE, "tau": between(0.0, math.pi / 2, "()", "in (0, pi/2) radians")}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0

@@ -17,7 +17,9 @@ by any outward ray) are invalid. ``rc = 0`` is allowed (all rays through the ori
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -25,6 +27,7 @@ from torch import Tensor
 from .base import Camera, Rays, in_image, safe_norm
 from .equirectangular import Equirectangular, lonlat_to_direction
 from .registry import register_camera
+from .validate import NONNEGATIVE, Domain
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,7 @@ class NonCentralPanorama(Camera):
 
     central = False
 
+    domains: ClassVar[Mapping[str, Domain]] = {"rc": NONNEGATIVE}
     rc: float = 1.0
     lon_min: float = -math.pi
     lon_max: float = math.pi

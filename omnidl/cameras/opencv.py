@@ -26,7 +26,9 @@ converged inside that same region; the gradient is the implicit-function one.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -36,6 +38,7 @@ from .base import Camera, Rays, normalize
 from .registry import register_camera
 from .distortion import (pixels_to_plane, plane_to_pixels, tangential_prism, tangential_prism_jacobian,
                          undistort_plane)
+from .validate import POSITIVE, Domain
 
 DIST_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
 
@@ -66,6 +69,7 @@ class OpenCVPinhole(Camera):
     Fields: ``fx, fy, cx, cy`` (pixels) and the distortion coefficients ``k1..k6, p1, p2, s1..s4``.
     """
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0

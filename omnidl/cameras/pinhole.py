@@ -2,19 +2,23 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from .base import Camera, Rays, in_image, normalize
 from .registry import register_camera
+from .validate import POSITIVE, Domain
 
 
 @dataclass(frozen=True)
 class Pinhole(Camera):
     """``u = fx * x / z + cx``, ``v = fy * y / z + cy``; points with ``z <= 0`` are invalid."""
 
+    domains: ClassVar[Mapping[str, Domain]] = {"fx": POSITIVE, "fy": POSITIVE}
     fx: float = 1.0
     fy: float = 1.0
     cx: float = 0.0

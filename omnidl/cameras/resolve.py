@@ -13,6 +13,7 @@ from typing import Any
 
 from .base import Camera
 from .registry import build, list_cameras
+from .validate import check_size
 
 #: ``configs/camera`` of the source tree (next to the ``omnidl`` package)
 CAMERA_CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs" / "camera"
@@ -87,7 +88,7 @@ def check_image_size(hw: Sequence[int], camera: Camera, what: str = "image", rel
     ``rel_tol``.
     """
     _check_policy(size_policy)
-    h, w = int(hw[0]), int(hw[1])
+    w, h = check_size(f"{what} size (H, W) = {tuple(hw)!r}", hw[1], hw[0])
     if size_policy in ("pad", "crop") or is_uniform_resize(w, h, camera):
         return
     msg = _mismatch(w, h, camera, what, source)
@@ -116,7 +117,7 @@ def fit_camera_to_image(camera: Camera, width: int, height: int, size_policy: st
     * ``"scale"``: stretched to the size (``camera.resized(W, H)``), aspect ratios within 2 %;
     * ``"error"``: ``ValueError`` naming ``source`` and both sizes.
     """
-    w, h = int(width), int(height)
+    w, h = check_size(f"{what} size {width!r}x{height!r} (W x H)", width, height)
     if (camera.width, camera.height) == (w, h):
         return camera
     check_image_size((h, w), camera, what, size_policy=size_policy, source=source)
@@ -279,12 +280,14 @@ def resolve_camera(spec: Any, width: int | None = None, height: int | None = Non
         cam, sized = _from_text(spec, width, height, fields)
     else:
         raise TypeError(f"camera spec of type {type(spec).__name__} ({spec!r}); expected {ACCEPTED}")
-    if not sized and width is not None and (cam.width, cam.height) != (int(width), int(height)):
+    if not sized and width is not None:
+        width, height = check_size(f"requested image size {width!r}x{height!r} (W x H)", width, height)
+    if not sized and width is not None and (cam.width, cam.height) != (width, height):
         stated, source = _stated_policy(spec)
         policy = size_policy or stated or ("error" if check_aspect else None)
         if policy is None:
-            return cam.resized(int(width), int(height))
-        cam = fit_camera_to_image(cam, int(width), int(height), _check_policy(str(policy)), source, "requested image")
+            return cam.resized(width, height)
+        cam = fit_camera_to_image(cam, width, height, _check_policy(str(policy)), source, "requested image")
     elif size_policy is not None:
         _check_policy(size_policy)
     return cam

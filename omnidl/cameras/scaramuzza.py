@@ -72,8 +72,8 @@ def read_ocamcalib(path: str | Path, one_based: bool | None = None) -> dict[str,
     path = Path(path)
     try:
         lines = [ln.strip() for ln in path.read_text().splitlines()]
-    except OSError as e:
-        raise ValueError(f"OCamCalib file {str(path)!r} cannot be read: {e}") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"OCamCalib file {str(path)!r} cannot be read as text: {e}") from e
     rows, comments, pending = [], [], []
     for ln in lines:
         if ln.startswith("#"):
@@ -102,6 +102,10 @@ def read_ocamcalib(path: str | Path, one_based: bool | None = None) -> dict[str,
     xc, yc = vals[2]
     c, d, e = vals[3]
     height, width = vals[4]
+    for key, val in (("height", height), ("width", width)):
+        if not math.isfinite(val) or val != int(val) or val < 1:
+            raise ValueError(f"OCamCalib file {str(path)!r}: image size line: {key} must be a positive integer, "
+                             f"got {val:g}")
     if one_based is None:
         stated = centre_convention(comments[2])
         one_based = True if stated is None else stated
@@ -233,9 +237,13 @@ class Scaramuzza(Camera):
         params = dict(params)
         path = params.pop("calib_file", None)
         one_based = params.pop("one_based", None)
-        if path is not None:
-            params = {**read_ocamcalib(path, one_based=None if one_based is None else bool(one_based)), **params}
-        return construct(cls, params)
+        if path is None:
+            return construct(cls, params)
+        params = {**read_ocamcalib(path, one_based=None if one_based is None else bool(one_based)), **params}
+        try:
+            return construct(cls, params)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"OCamCalib file {str(path)!r}: {e}") from e
 
     @classmethod
     def from_file(cls, path: str | Path, one_based: bool | None = None) -> "Scaramuzza":

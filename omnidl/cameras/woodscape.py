@@ -30,7 +30,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -38,6 +38,7 @@ from torch import Tensor
 from .base import Camera, Rays, in_image, safe_norm
 from .registry import construct, register_camera
 from .solvers import newton_polish, polyval, solve_increasing
+from .validate import POSITIVE, Domain, between
 
 WOODSCAPE_FIELDS = ("k1", "k2", "k3", "k4", "cx_offset", "cy_offset", "aspect_ratio", "width", "height")
 
@@ -77,6 +78,7 @@ def read_woodscape_json(path: str | Path) -> dict[str, Any]:
 class WoodScape(Camera):
     """WoodScape radial-polynomial fisheye (central); fields as the calibration JSON plus ``max_fov``."""
 
+    domains: ClassVar[Mapping[str, Domain]] = {"k1": POSITIVE, "aspect_ratio": POSITIVE, "max_fov": between(0.0, 2 * math.pi, "(]", "in (0, 2*pi] radians")}
     k1: float = 1.0
     k2: float = 0.0
     k3: float = 0.0
@@ -169,9 +171,13 @@ class WoodScape(Camera):
         """Fields, or ``calib_file`` (a WoodScape calibration JSON) plus optional field overrides."""
         params = dict(params)
         path = params.pop("calib_file", None)
-        if path is not None:
-            params = {**read_woodscape_json(path), **params}
-        return construct(cls, params)
+        if path is None:
+            return construct(cls, params)
+        params = {**read_woodscape_json(path), **params}
+        try:
+            return construct(cls, params)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"WoodScape calibration file {str(path)!r}: {e}") from e
 
     @classmethod
     def from_file(cls, path: str | Path) -> "WoodScape":

@@ -51,7 +51,7 @@ def sample_panorama(image: Tensor, directions: Tensor, mode: str = "bilinear") -
 
 
 def rotate_panorama(image: Tensor, R: Tensor, mode: str = "bilinear", camera: Camera | None = None,
-                    cache: bool = True) -> tuple[Tensor, Tensor]:
+                    cache: bool = True, invalid: float | None = None) -> tuple[Tensor, Tensor]:
     """Re-render a panorama for a rotated camera: :func:`~omnidl.geometry.warp.reproject` with
     the same camera as source and destination.
 
@@ -64,12 +64,14 @@ def rotate_panorama(image: Tensor, R: Tensor, mode: str = "bilinear", camera: Ca
 
     Args:
         image: ``(B, C, H, W)`` (or ``(C, H, W)`` / ``(H, W)``) panorama; labels with ``mode="nearest"``.
-            Depth (range) maps stay valid under rotation: ranges do not change.
+            Depth (range) maps stay valid under rotation (ranges do not change): rotate them with
+            ``mode="masked"`` so the 0 of holes is not blended into valid ranges.
         R: ``(3, 3)`` or ``(B, 3, 3)`` rotation ``R_old_new`` (OpenCV camera frame).
-        mode: ``"bilinear"`` or ``"nearest"``.
+        mode: ``"bilinear"``, ``"masked"`` (bilinear over the valid taps; depth) or ``"nearest"``.
         camera: the equirectangular camera of ``image`` (default: full sphere of the image size).
         cache: keep the sampling grid for the next call with the same ``R`` (see :func:`reproject`);
             ``False`` when every call brings a new rotation (random augmentation, video frames).
+        invalid: value of "no measurement" for ``masked`` (default 0); with ``bilinear`` it means ``masked``.
 
     Returns:
         ``(rotated image, valid)`` as :func:`reproject` (valid is all True for a full panorama).
@@ -78,4 +80,4 @@ def rotate_panorama(image: Tensor, R: Tensor, mode: str = "bilinear", camera: Ca
         if image.dim() < 2:
             raise ValueError(f"image must have shape (B, C, H, W), (C, H, W) or (H, W), got {tuple(image.shape)}")
         camera = Equirectangular(width=int(image.shape[-1]), height=int(image.shape[-2]))
-    return reproject(image, camera, camera, rotation=R, mode=mode, cache=cache)
+    return reproject(image, camera, camera, rotation=R, mode=mode, cache=cache, invalid=invalid)

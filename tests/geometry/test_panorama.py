@@ -7,7 +7,7 @@ import torch
 
 from .geom_helpers import render, texture
 from omnidl.cameras import Equirectangular
-from omnidl.geometry import euler_to_matrix, random_rotation, rotate_panorama, rotation_y, sample_panorama
+from omnidl.geometry import euler_to_matrix, random_rotation, rotate_panorama, rotation_y, sample_panorama, warp_grid
 
 D = torch.float64
 
@@ -119,3 +119,70 @@ def test_yaw_by_whole_columns_is_a_roll_and_sampling_matches_rotate_panorama():
     theirs, _ = rotate_panorama(img, R2)
     # identical away from the two pole rows (border handling may differ there)
     assert torch.allclose(ours[..., 2:-2, :], theirs[..., 2:-2, :], atol=1e-6)
+
+
+# -- masked interpolation of depth (issue 14: bilinear blended the 0 of holes into valid ranges) -----------
+def _depth_with_holes(h: int = 32, w: int = 64) -> torch.Tensor:
+    """``(1, 1, H, W)`` float64 ranges in [1.5, 4.5] with rectangular holes (0) and a single-pixel hole."""
+    g = torch.Generator().manual_seed(3)
+    i = torch.arange(h, dtype=torch.float64)[:, None]
+    j = torch.arange(w, dtype=torch.float64)[None, :]
+    depth = 3.0 + 1.5 * torch.sin(2 * math.pi * j / w) * torch.cos(math.pi * (i + 0.5) / h)
+    depth = depth + 0.01 * torch.rand(h, w, generator=g, dtype=torch.float64)
+    depth[8:14, 10:20] = 0.0
+    depth[20:26, 40:47] = 0.0
+    depth[16, 33] = 0.0
+    return depth[None, None]
+
+
+def test_rotate_depth_masked_stays_within_its_valid_taps():
+    """A yaw of 0.37 column: each output samples the two row neighbours ``j0, j0+1`` (weights ``1-t``, ``t``).
+    The masked output is their weighted mean over the valid ones, never below/above them, and invalid (0)
+    where both are holes; plain bilinear blends the 0 in (the failure of issue 14)."""
+    depth = _depth_with_holes()
+    h, w = depth.shape[-2:]
+    shift = 0.37                                             # columns
+    R = euler_to_matrix(*(torch.tensor(a, dtype=torch.float64) for a in (0.0, 0.0, 2 * math.pi * shift / w)))
+    out, valid = rotate_panorama(depth, R, mode="masked", cache=False)
+    bil, _ = rotate_panorama(depth, R, mode="bilinear", cache=False)
+    cam = Equirectangular(width=w, height=h)
+    u = warp_grid(cam, cam, R, dtype=torch.float64, cache=False).uv[0, ..., 0]   # (H, W) sampled column
+    j0 = torch.floor(u - 0.5).long()
+    t = (u - 0.5) - j0
+    a = depth[0, 0].gather(1, torch.remainder(j0, w))
+    b = depth[0, 0].gather(1, torch.remainder(j0 + 1, w))
+    wa, wb = (1 - t) * (a > 0), t * (b > 0)
+    expected = torch.where(wa + wb > 0, (wa * a + wb * b) / (wa + wb).clamp_min(1e-300), torch.zeros_like(a))
+    assert torch.allclose(out[0, 0], expected, atol=1e-6)
+    lo = torch.where(a > 0, a, b).minimum(torch.where(b > 0, b, a))
+    hi = torch.maximum(a, b)
+    ok = valid[0, 0]
+    assert (out[0, 0][ok] >= lo[ok] - 1e-6).all() and (out[0, 0][ok] <= hi[ok] + 1e-6).all()
+    assert torch.equal(ok, (wa + wb) >= 1e-6) and (out[0, 0][~ok] == 0).all()
+    # the unmasked blend: values between 0 and the valid neighbour, far below the valid range
+    blend = (bil[0, 0] > 0) & (bil[0, 0] < 1.4)
+    assert blend.any()
+
+
+def test_rotate_depth_masked_is_exact_on_constant_regions_and_invalid_without_taps():
+    depth = torch.full((1, 1, 32, 64), 2.75, dtype=torch.float32)
+    depth[..., 5:12, 20:31] = 0.0
+    R = euler_to_matrix(torch.tensor(0.05), torch.tensor(-0.11), torch.tensor(0.4))
+    out, valid = rotate_panorama(depth, R, mode="masked", cache=False)
+    assert out.dtype == torch.float32
+    assert (out[valid] == 2.75).all()                        # exact: no blur of a constant
+    assert (out[~valid] == 0).all() and (~valid).any()       # holes stay holes, marked invalid
+    empty, v0 = rotate_panorama(torch.zeros(1, 1, 16, 32), R, mode="masked", cache=False)
+    assert not v0.any() and (empty == 0).all()
+
+
+def test_rotate_with_invalid_value_means_masked():
+    depth = torch.full((1, 16, 32), 7.0, dtype=torch.float64)
+    depth[:, 4:9, 3:11] = -1.0                               # another "no data" marker
+    R = euler_to_matrix(*(torch.tensor(a, dtype=torch.float64) for a in (0.1, 0.2, 0.3)))
+    out, valid = rotate_panorama(depth, R, invalid=-1.0, cache=False)
+    assert (out[valid] == 7.0).all() and (out[~valid] == -1.0).all()
+    nan_map = depth.clone()
+    nan_map[:, 4:9, 3:11] = float("nan")                     # non-finite taps never blend either
+    out, valid = rotate_panorama(nan_map, R, mode="masked", cache=False)
+    assert torch.isfinite(out).all() and (out[valid] == 7.0).all()

@@ -208,3 +208,28 @@ def test_module_wrapper_and_dtypes(pano):
     assert (out32.double() - out64).abs().max() < 1e-3
     with pytest.raises(ValueError, match="mode"):
         Reprojector(PANO, cam, mode="area")
+
+
+def test_masked_equals_bilinear_without_holes_and_is_differentiable(pano):
+    """``mode="masked"`` is plain bilinear on a map without invalid values (any camera, seam included),
+    and differentiable w.r.t. the image and the rotation."""
+    depth = 1.0 + pano                                        # no zeros
+    cam = fisheye_195(32)
+    R = euler_to_matrix(*deg(5, -20, 170))
+    a, va = reproject(depth, PANO, cam, R, mode="bilinear", cache=False)
+    b, vb = reproject(depth, PANO, cam, R, mode="masked", cache=False)
+    assert torch.equal(va, vb) and torch.allclose(a, b, atol=1e-12)
+    small = Equirectangular(width=16, height=8)
+    img = (1.0 + torch.rand(1, 1, 8, 16, dtype=D)).requires_grad_()
+    angles = torch.tensor([0.1, 0.2, 0.3], dtype=D, requires_grad=True)
+    torch.autograd.gradcheck(lambda im, ang: reproject(im, small, Pinhole.from_fov(6, 5, 1.0),
+                                                       euler_to_matrix(*ang), mode="masked", cache=False)[0],
+                             (img, angles))
+
+
+def test_masked_sampling_of_a_wrong_mode_or_integer_image_is_an_error(pano):
+    cam = Pinhole.from_fov(8, 8, math.radians(60))
+    with pytest.raises(ValueError, match="mode must be one of"):
+        reproject(pano, PANO, cam, mode="masked_bilinear")
+    with pytest.raises(TypeError, match="masked sampling needs a floating image"):
+        reproject((pano * 100).long(), PANO, cam, mode="masked")

@@ -11,6 +11,9 @@ with ``outputs["boundary"] (B, 2, W)`` (radians below the horizon) and ``outputs
   gives the rays, so the rig radius (the metric scale) comes from the camera model itself.
 * ``camera_height`` (central variants; default ``batch["camera_height"]``, else 1.6 m);
 * ``export_dir``: write ``<name>.json``, ``<name>.obj`` and ``<name>_overlay.png`` per image;
+* ``fallback`` (Manhattan hooks; default ``"atlanta"``): when a Manhattan layout fails its assumption or
+  residual check (:mod:`.checks`), the Atlanta solver is run instead and the layout's ``info`` says
+  ``fallback_from: "manhattan"`` and why; ``None`` keeps the failed Manhattan result;
 * any :class:`~.pipeline.LayoutOptions` field.
 
 When the batch carries ground-truth corners (``corners_cam``/``num_walls`` from the data engine, or
@@ -36,11 +39,15 @@ DEFAULT_CAMERA_HEIGHT = 1.6
 
 def layouts_from_outputs(outputs: dict, batch: dict, camera: Any = None, world: str = "atlanta",
                          camera_height: float | None = None, central: bool = False,
-                         **options: Any) -> list[Layout]:
+                         fallback: str | None = "atlanta", **options: Any) -> list[Layout]:
     """Run :func:`~.pipeline.estimate_layout` on every image of a batch of network outputs.
 
     Without a ``camera`` every layout fails with the reason (no rays, no rig radius, no scale).
+    ``fallback``: the world to try when a ``world`` layout fails its assumption/residual check
+    (``info["assumptions_ok"] is False``); ``None`` for no fallback.
     """
+    if fallback not in (None, "atlanta", "manhattan"):
+        raise ValueError(f"fallback must be None, 'atlanta' or 'manhattan', got {fallback!r}")
     bon = outputs["boundary"].detach()
     B, _, W = bon.shape
     prob = torch.sigmoid(outputs["corner"].detach().float()).reshape(B, W).cpu().double().numpy()
@@ -58,7 +65,12 @@ def layouts_from_outputs(outputs: dict, batch: dict, camera: Any = None, world: 
                 h = float(batch["camera_height"][b])
             h = DEFAULT_CAMERA_HEIGHT if h is None else float(h)
         rays = column_rays_from_boundary(bon[b], cam)
-        out.append(estimate_layout(rays, prob[b], world=world, camera_height=h, options=opt))
+        lay = estimate_layout(rays, prob[b], world=world, camera_height=h, options=opt)
+        if not lay.ok and lay.info.get("assumptions_ok") is False and fallback not in (None, world):
+            alt = estimate_layout(rays, prob[b], world=fallback, camera_height=h, options=opt)
+            alt.info.update({"fallback_from": world, "fallback_reason": lay.reason})
+            lay = alt
+        out.append(lay)
     return out
 
 

@@ -11,7 +11,11 @@
    solver, Eq. 5.9), each ending in the corner assembly of :mod:`.assemble` (corners on the corner
    rays, occluded walls, the adjustment problem);
 4. final bounded least-squares adjustment (:mod:`.adjust`) and plausibility checks (heights, range,
-   a simple polygon around the camera).
+   a simple polygon around the camera);
+5. trust checks (:mod:`.checks`): the Manhattan branch first checks that the fitted walls are Manhattan,
+   and every layout must explain the boundaries (fit residual in pixel rows). A layout that fails
+   them has ``ok=False`` and ``info["assumptions_ok"] = False`` (the hooks then fall back to Atlanta);
+   the residual statistics are in ``info`` (``residual_px``, ``residual_p90_px``, ``residual_outliers``).
 
 Scale comes from the rig radius through the ray moments. With a central camera (``Rc`` below
 ``min_rc``) the pipeline refuses metric scale unless ``camera_height`` is given (the central
@@ -30,8 +34,10 @@ from ...utils.blas import single_thread_blas
 from .adjust import adjust_layout
 from .assemble import pixel_angles
 from .atlanta import atlanta_layout
+from .checks import assess, manhattan_check, manhattan_deviation
 from ...metrics.layout import find_peaks
 from .corners import wall_column_ranges
+from .directions import manhattan_orientation
 from .layout import Layout
 from .manhattan import manhattan_layout
 from .ransac import ransac_walls
@@ -67,6 +73,11 @@ class LayoutOptions:
     adjust_max_columns: int = 384        # columns used by the final adjustment (uniform subsample)
     seed: int = 0
     max_range: float = 50.0              # corners farther than this (m) mean a failed solve
+    check_assumptions: bool = True       # residual + world-assumption checks (:mod:`.checks`); False: off
+    manhattan_tolerance_deg: float = 10.0  # fitted walls farther than this from the Manhattan axes are oblique
+    max_non_manhattan: float = 0.15      # more than this fraction of fitted wall columns oblique: not Manhattan
+    residual_outlier_px: float = 3.0     # boundary points off by more than this (pixel rows) are outliers
+    max_residual_outliers: float = 0.2   # ... and more than this fraction of them: the layout is not trusted
 
 
 def _fail(reason, world, t0, **info):
@@ -159,6 +170,13 @@ def _estimate_layout(rays: ColumnRays, corner_prob: np.ndarray, world: str = "at
         theta = np.where(np.isfinite(theta_tls), theta_tls, theta)
     elif opt.directions != "ransac":
         raise ValueError(f"directions must be 'tls' or 'ransac', got {opt.directions!r}")
+    if world == "manhattan" and opt.check_assumptions:   # the walls' own directions must be Manhattan
+        weight = np.array([len(c) if g else 0 for c, g in zip(cols, good)], float)
+        checks, why = manhattan_check(manhattan_deviation(theta, weight, manhattan_orientation(theta, weight),
+                                                          opt.manhattan_tolerance_deg), opt)
+        info.update(checks)
+        if why is not None:
+            return _fail(why, world, t0, **info)
     try:
         if world == "manhattan":
             res = manhattan_layout(rays, corners_u, theta, good, cols, opt, camera_height)
@@ -185,6 +203,11 @@ def _estimate_layout(rays: ColumnRays, corner_prob: np.ndarray, world: str = "at
     bad = _check(verts, h_c, h_f, opt)
     if bad is not None:
         return _fail(bad, world, t0, **info)
+    if opt.check_assumptions:
+        checks, why = assess(rays, verts, h_c, h_f, opt)
+        info.update(checks)
+        if why is not None:
+            return _fail(why, world, t0, **info)
     info["time_s"] = time.perf_counter() - t0
     return Layout(ok=True, corners=verts, h_ceiling=float(h_c), h_floor=float(h_f), occluded=occl, world=world,
                   scale="camera_height" if central else "metric", info=info)
