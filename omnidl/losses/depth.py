@@ -11,6 +11,11 @@
 
 Shapes: ``pred``, ``target``: ``(B, 1, H, W)`` (or ``(B, H, W)``) range in metres; ``mask``: same shape, bool.
 Every function returns a 0-dim tensor; with no valid pixel it returns ``0`` (connected to ``pred``'s graph).
+
+Bad numbers: a target pixel that is ``0``, negative, NaN or inf is invalid (masked out, also when an explicit
+``mask`` covers it); :class:`DepthLoss` counts the NaN/inf ones in the term ``nonfinite_depth``. NaN/inf in the
+*prediction* propagate to a non-finite loss (the engine's ``trainer.skip_nonfinite`` guard then skips the batch).
+``pred`` and ``target`` of different shapes are an error (never broadcast).
 """
 from __future__ import annotations
 
@@ -22,6 +27,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.nn.padding import pad_panorama
+
+from .checks import DepthUnitCheck, require_float, require_nonempty_maps, require_same_shape, sample_names
 
 
 def valid_depth_mask(target: Tensor) -> Tensor:
@@ -47,9 +54,10 @@ def _zero(ref: Tensor) -> Tensor:
 
 
 def adaptive_berhu_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None, ratio: float = 0.2) -> Tensor:
-    """Mean reverse Huber over ``mask`` with ``c = ratio * max |pred - target|`` over the masked batch."""
-    if mask is None:
-        mask = valid_depth_mask(target)
+    """Mean reverse Huber over ``mask`` (and finite ``target``) with ``c = ratio * max |pred - target|`` over the
+    masked batch."""
+    require_same_shape(pred, target, "pred", "target", "adaptive_berhu_loss")
+    mask = valid_depth_mask(target) if mask is None else mask & torch.isfinite(target)
     if not mask.any():
         return _zero(pred)
     e = (pred - torch.where(mask, target, pred))[mask]
@@ -97,7 +105,8 @@ def depth_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None, ratio: 
     kept where the full 3x3 neighbourhood is valid; ``c2`` = ``ratio`` x their largest magnitude.
     """
     pred, target = _as_4d(pred), _as_4d(target)
-    mask = valid_depth_mask(target) if mask is None else _as_4d(mask)
+    require_same_shape(pred, target, "pred", "target", "depth_loss")
+    mask = valid_depth_mask(target) if mask is None else _as_4d(mask) & torch.isfinite(target)
     abs_term = adaptive_berhu_loss(pred, target, mask, ratio)
     gmask = neighbourhood_mask(mask, wrap)
     if not gmask.any():
@@ -115,7 +124,8 @@ def depth_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None, ratio: 
 def margin_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None, per_image: bool = False) -> Tensor:
     """Eq. 4.6 over the valid pixels of the batch (``per_image=True``: per image, then averaged)."""
     pred, target = _as_4d(pred), _as_4d(target)
-    mask = valid_depth_mask(target) if mask is None else _as_4d(mask)
+    require_same_shape(pred, target, "pred", "target", "margin_loss")
+    mask = valid_depth_mask(target) if mask is None else _as_4d(mask) & torch.isfinite(target)
     if not per_image:
         if not mask.any():
             return _zero(pred)
@@ -126,31 +136,56 @@ def margin_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None, per_im
     return torch.stack(terms).mean() if terms else _zero(pred)
 
 
+def prepare_depth(outputs: dict[str, Tensor], batch: dict, where: str,
+                  unit_check: DepthUnitCheck | None = None) -> tuple[Tensor, Tensor, Tensor, dict[str, float]]:
+    """``outputs["depth"]``, ``batch["depth"]`` checked -> ``(pred, target, mask, flags)``, all ``(B, 1, H, W)``.
+
+    Errors: a non-float prediction, a zero-size map, different shapes. ``flags``: ``nonfinite_depth`` (number of
+    NaN/inf target pixels, masked out) and ``no_valid_depth`` (1.0, with a warning naming the samples, when no
+    pixel is valid). ``unit_check`` warns once when the depth does not look like metres."""
+    require_float(outputs["depth"], "outputs['depth']", where)
+    pred = _as_4d(outputs["depth"])
+    target = _as_4d(batch["depth"]).to(pred.dtype)
+    require_nonempty_maps(pred, "outputs['depth']", where)
+    require_same_shape(pred, target, "outputs['depth']", "batch['depth']", where)
+    finite = torch.isfinite(target)
+    mask = (target > 0) & finite
+    flags: dict[str, float] = {}
+    if not bool(finite.all()):
+        flags["nonfinite_depth"] = float((~finite).sum())
+    if not bool(mask.any()):
+        names = sample_names(batch)
+        warnings.warn(f"{where}: no valid depth pixel in the batch (all 0, negative or NaN/inf)"
+                      f"{' in samples ' + ', '.join(names[:8]) if names else ''}; depth loss set to 0", stacklevel=3)
+        flags["no_valid_depth"] = 1.0
+    elif unit_check is not None:
+        unit_check(pred, target, mask)
+    return pred, target, mask, flags
+
+
 class DepthLoss(nn.Module):
     """``L_Dep`` (Eq. 4.5) as an engine loss: ``loss(outputs, batch) -> (total, terms)``.
 
     Reads ``outputs["depth"]`` and ``batch["depth"]`` (``(B, 1, H, W)``, 0 = invalid). With
     ``alpha_margin > 0`` adds the margin loss (Eq. 4.6). Terms: ``depth``, ``depth_abs``,
-    ``depth_grad``, ``margin``, and ``no_valid_depth`` (1.0 when the batch has no valid pixel).
+    ``depth_grad``, ``margin``, ``no_valid_depth`` (1.0 when the batch has no valid pixel) and
+    ``nonfinite_depth`` (the number of NaN/inf target pixels, treated as invalid). Errors: non-float
+    prediction, zero-size map, shapes that differ. Warns once when the depth does not look like metres
+    (see :class:`omnidl.losses.checks.DepthUnitCheck`).
     """
 
     def __init__(self, ratio: float = 0.2, wrap: bool = True, alpha_margin: float = 0.0) -> None:
         super().__init__()
         self.ratio, self.wrap, self.alpha_margin = ratio, wrap, alpha_margin
+        self.unit_check = DepthUnitCheck("DepthLoss")
 
     def forward(self, outputs: dict[str, Tensor], batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
-        pred, target = _as_4d(outputs["depth"]), _as_4d(batch["depth"]).to(outputs["depth"].dtype)
-        if pred.shape != target.shape:
-            raise ValueError(f"DepthLoss: outputs['depth'] {tuple(pred.shape)} and batch['depth'] "
-                             f"{tuple(target.shape)} differ in shape")
-        mask = valid_depth_mask(target)
+        pred, target, mask, flags = prepare_depth(outputs, batch, "DepthLoss", self.unit_check)
         total, a, g = depth_loss(pred, target, mask, self.ratio, self.wrap)
         terms = {"depth": _item(total), "depth_abs": _item(a), "depth_grad": _item(g)}
         if self.alpha_margin:
             m = margin_loss(pred, target, mask)
             total = total + self.alpha_margin * m
             terms["margin"] = _item(m)
-        if not mask.any():
-            warnings.warn("DepthLoss: batch without any valid depth pixel; depth loss set to 0", stacklevel=2)
-            terms["no_valid_depth"] = 1.0
+        terms.update(flags)
         return total, terms

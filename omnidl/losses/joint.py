@@ -8,6 +8,10 @@ with the thesis' hand-set ``alpha = [8, 12, 0.001, 4]``.
 so the loss reaches the semantic branch too; ``"hard"``: argmax one-hot; ``"gt"``: the true label),
 the MSE of each class map over the pixels with valid depth and a known label, averaged over the
 known classes (``1 .. C-1``).
+
+Bad inputs are handled as in :mod:`omnidl.losses.depth` and :mod:`omnidl.losses.segmentation`: NaN/inf depth
+targets are masked (flag ``nonfinite_depth``), labels outside ``[0, C)`` other than the ignore index are an error
+naming the values, the class count and the samples, predictions with NaN/inf give a non-finite loss.
 """
 from __future__ import annotations
 
@@ -19,8 +23,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from .depth import _as_4d, _item, depth_loss, margin_loss, valid_depth_mask
-from .segmentation import IGNORE_INDEX, SegmentationLoss
+from .checks import DepthUnitCheck, require_same_shape
+from .depth import _as_4d, _item, depth_loss, margin_loss, prepare_depth, valid_depth_mask
+from .segmentation import IGNORE_INDEX, SegmentationLoss, check_segmentation_inputs
 
 TASKS = ("depth", "semantic")
 
@@ -29,9 +34,16 @@ def object_loss(depth: Tensor, target: Tensor, logits: Tensor, labels: Tensor, m
                 ignore_index: int = IGNORE_INDEX) -> Tensor:
     """Eq. 4.7. ``depth``, ``target``: ``(B, 1, H, W)``; ``logits``: ``(B, C, H, W)``; ``labels``: ``(B, H, W)``.
 
-    Returns 0 (connected to the graph) when no pixel has both valid depth and a known label.
+    Returns 0 (connected to the graph) when no pixel has both valid depth and a known label. Errors: shapes that
+    differ, labels outside ``[0, C)`` other than ``ignore_index``.
     """
     depth, target = _as_4d(depth), _as_4d(target)
+    require_same_shape(depth, target, "depth", "target", "object_loss")
+    labels = check_segmentation_inputs(logits, labels, ignore_index, "object_loss")
+    return _object_loss(depth, target, logits, labels, mode, ignore_index)
+
+
+def _object_loss(depth: Tensor, target: Tensor, logits: Tensor, labels: Tensor, mode: str, ignore_index: int) -> Tensor:
     num_classes = logits.shape[1]
     valid = (valid_depth_mask(target)[:, 0] & (labels != ignore_index))       # (B, H, W)
     if not valid.any():
@@ -99,6 +111,7 @@ class JointLoss(nn.Module):
         self.seg = SegmentationLoss(semantic_loss, class_weights, class_frequencies, weighting, ignore_index)
         self.berhu_ratio, self.wrap, self.object_mode = berhu_ratio, wrap, object_mode
         self.margin_per_image, self.ignore_index = margin_per_image, ignore_index
+        self.unit_check = DepthUnitCheck("JointLoss")
 
     @staticmethod
     def _get(d: dict, key: str, where: str) -> Tensor:
@@ -113,25 +126,22 @@ class JointLoss(nn.Module):
         need_depth = any(k in self.active for k in ("depth", "margin", "object"))
         need_sem = any(k in self.active for k in ("semantic", "object"))
         if need_depth:
-            pred = _as_4d(self._get(outputs, "depth", "outputs"))
-            target = _as_4d(self._get(batch, "depth", "batch")).to(pred.dtype)
-            if pred.shape != target.shape:
-                raise ValueError(f"JointLoss: outputs['depth'] {tuple(pred.shape)} vs batch['depth'] "
-                                 f"{tuple(target.shape)}")
-            mask = valid_depth_mask(target)
-            if not mask.any():
-                warnings.warn("JointLoss: batch without valid depth; depth terms set to 0", stacklevel=2)
-                terms["no_valid_depth"] = 1.0
+            self._get(outputs, "depth", "outputs")
+            self._get(batch, "depth", "batch")
+            pred, target, mask, flags = prepare_depth(outputs, batch, "JointLoss", self.unit_check)
+            terms.update(flags)
         if need_sem:
             logits = self._get(outputs, "semantic", "outputs")
-            labels = self._get(batch, "semantic", "batch").long()
+            labels = self._get(batch, "semantic", "batch")
             if labels.dim() == 4 and labels.shape[1] == 1:
                 labels = labels[:, 0]
+            labels = check_segmentation_inputs(logits, labels, self.ignore_index, "JointLoss", batch,
+                                               ("outputs['semantic']", "batch['semantic']"))
             if not (labels != self.ignore_index).any():
                 warnings.warn("JointLoss: batch without labelled pixels; semantic terms set to 0", stacklevel=2)
                 terms["no_valid_semantic"] = 1.0
         if "semantic" in self.active:
-            l_seg = self.seg.segmentation_term(logits, labels)
+            l_seg = self.seg.segmentation_term(logits, labels, checked=True)
             terms["semantic"] = _item(l_seg)
             parts.append(self.alpha["semantic"] * l_seg)
         if "depth" in self.active:
@@ -143,7 +153,10 @@ class JointLoss(nn.Module):
             terms["margin"] = _item(l_mar)
             parts.append(self.alpha["margin"] * l_mar)
         if "object" in self.active:
-            l_obj = object_loss(pred, target, logits, labels, self.object_mode, self.ignore_index)
+            if logits.shape[-2:] != pred.shape[-2:] or logits.shape[0] != pred.shape[0]:
+                raise ValueError(f"JointLoss: outputs['semantic'] {tuple(logits.shape)} and outputs['depth'] "
+                                 f"{tuple(pred.shape)} differ in batch size or map size; expected the same")
+            l_obj = _object_loss(pred, target, logits, labels, self.object_mode, self.ignore_index)
             terms["object"] = _item(l_obj)
             parts.append(self.alpha["object"] * l_obj)
         total = torch.stack(parts).sum() if len(parts) > 1 else parts[0]

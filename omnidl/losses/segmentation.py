@@ -11,6 +11,12 @@
   ``1 - recall`` measured on the current batch (argmax, no gradient), ``N`` = known pixels.
 
 Shapes: ``logits (B, C, H, W)``, ``labels (B, H, W)`` int64 (``0`` = unknown).
+
+Bad inputs: a label outside ``[0, C)`` that is not the ignore index is a ``ValueError`` naming the values, the
+class count and (for :class:`SegmentationLoss`, from ``batch["meta"]``) the samples; float labels must hold whole
+numbers (NaN or fractions are errors); logits must be floating point, with no zero-size map. An empty batch or one
+without a labelled pixel gives 0 (flag ``no_valid_semantic``). NaN/inf *logits* propagate to a non-finite loss
+(skipped by the engine's ``trainer.skip_nonfinite`` guard).
 """
 from __future__ import annotations
 
@@ -22,6 +28,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from .checks import as_class_ids, require_float, require_nonempty_maps
 from .depth import _item
 
 IGNORE_INDEX = 0
@@ -40,7 +47,7 @@ def class_weights_from_frequencies(counts: Sequence[float] | Tensor, method: str
     c = torch.as_tensor(counts, dtype=torch.float64).clone()
     if c.dim() != 1 or (c < 0).any():
         raise ValueError(f"class counts must be a 1-D non-negative sequence, got {counts}")
-    if ignore_index is not None:
+    if ignore_index is not None and 0 <= ignore_index < len(c):   # an ignore index outside [0, C) has no weight
         c[ignore_index] = 0
     total = c.sum()
     if total <= 0:
@@ -58,7 +65,7 @@ def class_weights_from_frequencies(counts: Sequence[float] | Tensor, method: str
         raise ValueError(f"class weighting method must be 'inverse_log', 'inverse' or 'median', got {method!r}")
     w = w / w[seen].mean()
     w[~seen] = w[seen].max()
-    if ignore_index is not None:
+    if ignore_index is not None and 0 <= ignore_index < len(c):
         w[ignore_index] = 0
     return w.float()
 
@@ -67,17 +74,33 @@ def _zero(ref: Tensor) -> Tensor:
     return ref.sum() * 0.0
 
 
-def _check(logits: Tensor, labels: Tensor) -> None:
+def check_segmentation_inputs(logits: Tensor, labels: Tensor, ignore_index: int = IGNORE_INDEX,
+                              where: str = "segmentation loss", batch: dict | None = None,
+                              keys: tuple[str, str] = ("logits", "labels")) -> Tensor:
+    """Check ``logits (B, C, H, W)`` and ``labels (B, H, W)``; returns the labels as int64 class ids.
+
+    ``keys`` name the two tensors in messages; ``batch`` (with ``meta``) lets an error name the samples."""
+    require_float(logits, keys[0], where)
     if logits.dim() != 4 or labels.shape != (logits.shape[0], *logits.shape[2:]):
-        raise ValueError(f"segmentation loss: logits (B, C, H, W) and labels (B, H, W) expected, "
+        raise ValueError(f"{where}: expected logits (B, C, H, W) in {keys[0]} and labels (B, H, W) in {keys[1]}, "
                          f"got {tuple(logits.shape)} and {tuple(labels.shape)}")
+    require_nonempty_maps(logits, keys[0], where)
+    return as_class_ids(labels, logits.shape[1], ignore_index, where, keys[1], batch)
+
+
+def _check(logits: Tensor, labels: Tensor, ignore_index: int, where: str) -> Tensor:
+    return check_segmentation_inputs(logits, labels, ignore_index, where)
 
 
 def weighted_cross_entropy(logits: Tensor, labels: Tensor, weight: Tensor | None = None,
                            ignore_index: int = IGNORE_INDEX) -> Tensor:
     """``sum_i w_{y_i} (-log p_i(y_i)) / sum_i w_{y_i}`` over pixels with ``y_i != ignore_index``;
     0 when there is no such pixel (or all their weights are 0)."""
-    _check(logits, labels)
+    labels = _check(logits, labels, ignore_index, "weighted_cross_entropy")
+    return _weighted_cross_entropy(logits, labels, weight, ignore_index)
+
+
+def _weighted_cross_entropy(logits: Tensor, labels: Tensor, weight: Tensor | None, ignore_index: int) -> Tensor:
     valid = labels != ignore_index
     if weight is not None:
         weight = weight.to(dtype=logits.dtype, device=logits.device)
@@ -92,7 +115,11 @@ def weighted_cross_entropy(logits: Tensor, labels: Tensor, weight: Tensor | None
 
 def recall_loss(logits: Tensor, labels: Tensor, ignore_index: int = IGNORE_INDEX, eps: float = 1e-12) -> Tensor:
     """Recall loss (Eq. 4.3), normalised by the number of known pixels; 0 without known pixels."""
-    _check(logits, labels)
+    labels = _check(logits, labels, ignore_index, "recall_loss")
+    return _recall_loss(logits, labels, ignore_index, eps)
+
+
+def _recall_loss(logits: Tensor, labels: Tensor, ignore_index: int, eps: float = 1e-12) -> Tensor:
     valid = labels != ignore_index
     if not valid.any():
         return _zero(logits)
@@ -107,6 +134,11 @@ def recall_loss(logits: Tensor, labels: Tensor, ignore_index: int = IGNORE_INDEX
     logp = F.log_softmax(logits, dim=1)
     nll = -logp.gather(1, labels.clamp(0, num_classes - 1).unsqueeze(1)).squeeze(1)
     return (w[labels[valid]] * nll[valid]).sum() / valid.sum()
+
+
+def _count_of(counts: Tensor, index: int) -> Tensor | int:
+    """``counts[index]``, or 0 for an index outside the classes (an ignore index such as 255 or -1)."""
+    return counts[index] if 0 <= index < counts.numel() else 0
 
 
 class SegmentationLoss(nn.Module):
@@ -139,21 +171,26 @@ class SegmentationLoss(nn.Module):
             w = class_weights_from_frequencies(list(class_frequencies), weighting, ignore_index)
         self.register_buffer("weight", w, persistent=False)
 
-    def segmentation_term(self, logits: Tensor, labels: Tensor) -> Tensor:
+    def segmentation_term(self, logits: Tensor, labels: Tensor, checked: bool = False) -> Tensor:
+        """The loss value; ``checked=True``: ``labels`` already passed :func:`check_segmentation_inputs`."""
+        if not checked:
+            labels = _check(logits, labels, self.ignore_index, type(self).__name__)
         if self.kind == "recall":
-            return recall_loss(logits, labels, self.ignore_index)
+            return _recall_loss(logits, labels, self.ignore_index)
         weight = self.weight
         if self.batch_weights:
             counts = label_counts(labels, logits.shape[1])
             weight = class_weights_from_frequencies(counts, self.weighting, self.ignore_index) \
-                if counts.sum() - counts[self.ignore_index] > 0 else None
-        return weighted_cross_entropy(logits, labels, weight, self.ignore_index)
+                if counts.sum() - _count_of(counts, self.ignore_index) > 0 else None
+        return _weighted_cross_entropy(logits, labels, weight, self.ignore_index)
 
     def forward(self, outputs: dict[str, Tensor], batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
-        logits, labels = outputs["semantic"], batch["semantic"].long()
+        logits, labels = outputs["semantic"], batch["semantic"]
         if labels.dim() == 4 and labels.shape[1] == 1:
             labels = labels[:, 0]
-        loss = self.segmentation_term(logits, labels)
+        labels = check_segmentation_inputs(logits, labels, self.ignore_index, "SegmentationLoss", batch,
+                                           ("outputs['semantic']", "batch['semantic']"))
+        loss = self.segmentation_term(logits, labels, checked=True)
         terms = {"semantic": _item(loss)}
         if not (labels != self.ignore_index).any():
             warnings.warn("SegmentationLoss: batch without any labelled pixel; semantic loss set to 0", stacklevel=2)
