@@ -17,6 +17,7 @@ import torch
 
 from ..cameras import Equirectangular
 from ..geometry.rotations import UPRIGHT_TO_WORLD
+from .layout_sample import MAX_WALLS, pad_corners
 from .layout_targets import boundary_targets, corner_heat
 from .readers import rgb_to_tensor
 from .validate import DataValidationError, check_label_cor, read_raw, read_text
@@ -75,23 +76,49 @@ def corners_from_label_cor(cor: np.ndarray, width: int, height: int, camera_heig
     return out @ np.asarray(UPRIGHT_TO_WORLD)                      # layout -> camera frame (R^T on the right)
 
 
+#: sub-folder names of each split (HorizonNet's ``{train,valid,test}/``; ``val/`` accepted too)
+SPLIT_DIRS = {"train": ("train",), "val": ("valid", "val"), "test": ("test",)}
+
+
+def split_root(root: Path, split: str | None, what: str) -> Path:
+    """``root`` itself for ``split=None``, else its split sub-folder (:data:`SPLIT_DIRS`); a clear error lists
+    the folders looked for."""
+    if split is None:
+        return root
+    from .splits import check_split_name
+    check_split_name(split, what)
+    cands = [root / d for d in SPLIT_DIRS[split]]
+    for c in cands:
+        if c.is_dir():
+            return c
+    raise FileNotFoundError(f"{what}: no folder for split {split!r} in {root} (looked for "
+                            f"{[str(c) for c in cands]}); use data.split=null for a folder without splits")
+
+
 class HorizonNetFolderDataset(torch.utils.data.Dataset):
     """``root/img/NAME.{png,jpg}`` + ``root/label_cor/NAME.txt`` -> layout samples (central panoramas).
+
+    With ``split`` the folder is HorizonNet's ``root/{train,valid,test}/{img,label_cor}`` (MatterportLayout,
+    PanoContext / Stanford2D-3D as HorizonNet ships them; ``val/`` is accepted for ``valid/``).
 
     Every sample is validated (:mod:`omnidl.data.validate`): an unreadable image or an invalid ``label_cor``
     (a point outside the image, NaN, ceiling below floor, fewer than 3 corners) raises a
     :class:`~omnidl.data.robust.CorruptSampleError` naming the file (skipped with a warning in training).
 
-    Keys: ``image (3,H,W)``, ``boundary (2,W)`` rows, ``boundary_valid``, ``corner_heat (1,W)``,
-    ``corners_cam (K,2,3)`` (up to the assumed ``camera_height``), ``num_walls``, ``meta``.
+    Keys (the standard layout sample, :mod:`omnidl.data.layout_sample`): ``image (3,H,W)``, ``boundary (2,W)``
+    rows, ``boundary_valid``, ``corner_heat (1,W)``, ``corners_cam (max_walls,2,3)`` zero-padded (up to the
+    assumed ``camera_height``) with ``num_walls`` real ones, ``camera_height ()``, ``meta``.
     """
 
     def __init__(self, root: str | Path, width: int | None = None, height: int | None = None,
-                 camera_height: float = 1.6) -> None:
-        self.root = Path(root)
+                 camera_height: float = 1.6, split: str | None = None, max_walls: int = MAX_WALLS,
+                 max_samples: int | None = None) -> None:
+        self.root = split_root(Path(root).expanduser(), split, "HorizonNetFolderDataset")
         img_dir, lab_dir = self.root / "img", self.root / "label_cor"
         if not img_dir.is_dir() or not lab_dir.is_dir():
             raise FileNotFoundError(f"HorizonNet folder {self.root}: needs img/ and label_cor/ sub-folders")
+        if not (np.isfinite(camera_height) and camera_height > 0):
+            raise ValueError(f"HorizonNetFolderDataset: camera_height must be > 0 metres, got {camera_height}")
         self.items = []
         for p in sorted(img_dir.iterdir()):
             if p.suffix.lower() in (".png", ".jpg", ".jpeg"):
@@ -101,7 +128,11 @@ class HorizonNetFolderDataset(torch.utils.data.Dataset):
                 self.items.append((p, lab))
         if not self.items:
             raise FileNotFoundError(f"HorizonNet folder {self.root}: no images in {img_dir}")
-        self.width, self.height, self.camera_height = width, height, camera_height
+        if max_samples:
+            self.items = self.items[: int(max_samples)]
+        self.width, self.height, self.camera_height = width, height, float(camera_height)
+        self.max_walls = int(max_walls)
+        self.camera = Equirectangular(width=width, height=height) if width and height else None
 
     def __len__(self) -> int:
         return len(self.items)
@@ -117,8 +148,11 @@ class HorizonNetFolderDataset(torch.utils.data.Dataset):
             cc = corners_from_label_cor(cor, W, H, self.camera_height)
         except ValueError as e:
             raise DataValidationError(f"{lab}: {e}") from e
+        padded = pad_corners(cc, self.max_walls, lab)
         cam = Equirectangular(width=W, height=H)
         rows, valid = boundary_targets(cc, cam)
         return {"image": img, "boundary": rows, "boundary_valid": valid,
-                "corner_heat": corner_heat(cor[0::2, 0] + 0.5, W), "corners_cam": torch.from_numpy(cc).float(),
-                "num_walls": torch.tensor(len(cc)), "meta": {"name": p.stem, "file": str(p), "rig_radius": 0.0}}
+                "corner_heat": corner_heat(cor[0::2, 0] + 0.5, W), "corners_cam": padded,
+                "num_walls": torch.tensor(len(cc)), "camera_height": torch.tensor(self.camera_height),
+                "meta": {"name": p.stem, "file": str(p), "label_file": str(lab), "rig_radius": 0.0,
+                         "camera": cam.to_config()}}

@@ -88,6 +88,18 @@ def room_to_corners_cam(polygon: np.ndarray, camera_height: float, ceiling_heigh
     return c @ _R                                                   # layout -> camera (R^T on the right)
 
 
+def pad_corners(corners_cam: np.ndarray, max_walls: int, src: str | Path) -> torch.Tensor:
+    """``(K, 2, 3)`` corners -> ``(max_walls, 2, 3)`` float32, zero rows after the ``K`` real ones (so batches
+    collate; ``num_walls`` says ``K``). More than ``max_walls`` corners is an error naming ``src``."""
+    cc = np.asarray(corners_cam)
+    if len(cc) > max_walls:
+        raise DataValidationError(f"{src}: room polygon has {len(cc)} corners, more than max_walls={max_walls} "
+                                  "(raise data.max_walls)")
+    padded = torch.zeros(max_walls, 2, 3)
+    padded[: len(cc)] = torch.from_numpy(cc).float()
+    return padded
+
+
 def layout_sample(image: torch.Tensor, polygon: np.ndarray, camera_height: float, ceiling_height: float,
                   name: str, file: str | Path, max_walls: int = MAX_WALLS, label_file: str | Path | None = None,
                   meta: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -105,18 +117,14 @@ def layout_sample(image: torch.Tensor, polygon: np.ndarray, camera_height: float
     for fld, v in (("camera height", camera_height), ("ceiling height above the camera", ceiling_height)):
         if not (np.isfinite(v) and v > 0):
             raise invalid(src, fld, v, "a finite positive height")
-    if len(poly) > max_walls:
-        raise DataValidationError(f"{src}: room polygon has {len(poly)} corners, more than max_walls={max_walls} "
-                                  "(raise data.max_walls)")
     H, W = image.shape[-2:]
     cam = Equirectangular(width=W, height=H)
     cc = room_to_corners_cam(poly, camera_height, ceiling_height)
+    padded = pad_corners(cc, max_walls, src)                        # too many corners: an error naming src
     rows, valid = boundary_targets(cc, cam)
     if not bool(valid.any()):
         raise invalid(src, "room polygon", "a room whose boundary no column sees", "a room around the camera")
     uv, _ = cam.project(torch.from_numpy(cc[:, 1]))                 # floor corners -> corner columns
-    padded = torch.zeros(max_walls, 2, 3)
-    padded[: len(cc)] = torch.from_numpy(cc).float()
     m = {"name": name, "file": str(file), "rig_radius": 0.0, "camera": cam.to_config()}
     if label_file is not None:
         m["label_file"] = str(label_file)

@@ -13,8 +13,13 @@ camera frame through ``UPRIGHT_TO_WORLD^T`` (:mod:`omnidl.geometry.rotations`). 
 Sample keys (as the data engine, ``docs/synth.md``): ``image``, ``depth`` (range along the ray from the
 column's optical centre, as decoded; 0 = invalid), ``boundary (2,W)`` rows + ``boundary_valid`` (from
 ``label_ang``, or ``EM_gt`` with ``boundary_source="edges"``, or the 3D corners through the camera with
-``"corners"``), ``corner_heat (1,W)`` from ``label_cor``, ``corners_cam (N,2,3)`` (``3D_gt - cam_pose``),
-``num_walls``, ``edges (1,H,W)``, ``meta`` (``name``, ``rig_radius``).
+``"corners"``), ``corner_heat (1,W)`` from ``label_cor``, ``corners_cam (max_walls,2,3)`` (``3D_gt - cam_pose``, zero-padded so batches collate),
+``num_walls`` (the real corners), ``edges (1,H,W)``, ``meta`` (``name``, ``rig_radius``).
+
+Splits (``split``): a sub-folder ``root/{train,valid|val,test}/`` holding the folders above (as
+``python -m omnidl.apps.synth --format noncentral --split S --out root/S`` writes them), else a list of names
+``root/split/{split}.txt`` (or ``root/{split}.txt``; one name per line; the release's ``ScaledLayoutsSplit.pkl``
+is a pickle and is not read: write its names into such a list), else ``split_file``.
 ``Rc``: the ``rc`` argument, else parsed from names like ``..._R06585`` (0.6585 m), else an error.
 """
 from __future__ import annotations
@@ -29,12 +34,15 @@ import torch
 
 from ..cameras import Equirectangular
 from ..geometry.rotations import UPRIGHT_TO_WORLD
-from .horizonnet_format import read_label_cor
+from .horizonnet_format import SPLIT_DIRS, read_label_cor
+from .layout_sample import MAX_WALLS, pad_corners
 from .layout_targets import boundary_targets, corner_heat
 from .readers import rgb_to_tensor
+from .splits import check_split_name, find_split_file, read_split_list
 from .validate import DataValidationError, UnreadableFileError, check_range, invalid, load_npy, read_image, read_raw
 
 DEPTH_MAX = 10.0
+SPLIT_PATTERNS = ("split/{split}.txt", "{split}.txt")
 
 
 def decode_depth(rgb: np.ndarray, d_max: float = DEPTH_MAX) -> np.ndarray:
@@ -92,6 +100,11 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
             the other folders are optional and not read; boundaries and ``corners_cam`` come from ``label_cor``
             (``boundary_source="label_cor"``, metric up to the assumed ``camera_height``); no ``depth``/``edges``.
         camera_height: assumed camera height (m) of the ``label_cor`` reconstruction.
+        split: ``train`` / ``val`` / ``test`` (module docstring) or ``None`` (every image of ``root``).
+        split_file: explicit list of names (overrides ``split``'s search; ``names`` overrides both).
+        width, height: the expected image size (the network's input; the images are not resized): another
+            size is an error naming the file. ``None`` accepts any size.
+        max_walls: padding of ``corners_cam``; max_samples: keep the first N samples (quick runs).
 
     Every file is validated (:mod:`omnidl.data.validate`): sizes against the image, ``depth_coded`` 24-bit
     RGB (a grayscale one is refused), finite ``3D_gt``/``cam_pose``/``label_ang`` of the documented shapes,
@@ -101,8 +114,21 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
 
     def __init__(self, root: str | Path, names: list[str] | None = None, rc: float | None = None,
                  boundary_source: str = "label_ang", depth: bool = True, label_cor_only: bool = False,
-                 camera_height: float = 1.6) -> None:
-        self.root = Path(root)
+                 camera_height: float = 1.6, split: str | None = None, split_file: str | Path | None = None,
+                 width: int | None = None, height: int | None = None, max_walls: int = MAX_WALLS,
+                 max_samples: int | None = None) -> None:
+        self.root = Path(root).expanduser()
+        if names is not None:
+            pass                                                        # an explicit list wins
+        elif split_file is not None:
+            names = read_split_list(split_file)
+        elif split is not None:
+            check_split_name(split, "NonCentralIndoorDataset")
+            sub = next((self.root / d for d in SPLIT_DIRS[split] if (self.root / d / "img").is_dir()), None)
+            if sub is not None:
+                self.root = sub
+            else:
+                names = read_split_list(find_split_file(self.root, split, SPLIT_PATTERNS, "NonCentralIndoorDataset"))
         if boundary_source not in ("label_ang", "edges", "corners", "label_cor"):
             raise ValueError(f"boundary_source must be label_ang, edges, corners or label_cor, got {boundary_source!r}")
         if not camera_height > 0:
@@ -113,6 +139,14 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
         self.names = list(names) if names is not None else sorted(p.stem for p in img_dir.glob("*.png"))
         if not self.names:
             raise FileNotFoundError(f"NonCentralIndoorDataset: no images in {img_dir}")
+        lost = [m for m in self.names if not (img_dir / f"{m}.png").is_file()]
+        if lost:
+            raise FileNotFoundError(f"NonCentralIndoorDataset: {len(lost)} listed name(s) have no image in {img_dir}: "
+                                    f"{lost[:10]} (expected {img_dir}/<name>.png)")
+        if max_samples:
+            self.names = self.names[: int(max_samples)]
+        self.size = (int(width), int(height)) if width and height else None
+        self.max_walls = int(max_walls)
         self.label_cor_only = bool(label_cor_only)
         if self.label_cor_only:
             boundary_source, depth = "label_cor", False
@@ -151,6 +185,9 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
         img_path = self._file("img", f"{name}.png")
         bgr = read_raw(img_path, 1, "image")                              # IMREAD_COLOR; unreadable -> named error
         H, W = bgr.shape[:2]
+        if self.size is not None and (W, H) != self.size:
+            raise invalid(img_path, "image", f"{W}x{H}", f"{self.size[0]}x{self.size[1]} (data.width x data.height; "
+                          "non-central panoramas are not resized: set them to the images' size)")
         rc = self._rc(name)
         cam = build({"type": "noncentral_pano", "width": W, "height": H, "rc": rc})
         out: dict[str, Any] = {"image": rgb_to_tensor(bgr)}
@@ -165,7 +202,7 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
                 corners_cam = corners_from_label_cor_camera(cor, cam, self.camera_height)
             except ValueError as e:
                 raise DataValidationError(f"{cor_path}: {e}") from e
-            n = len(corners_cam)
+            n, n_src = len(corners_cam), None
         else:
             gt_path = self._file("DataPython", "3D_gt", f"{name}.npy")
             gt = load_npy(gt_path, "3D_gt", shape=(None, 3))
@@ -175,11 +212,11 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
             if pose.size != 3:
                 raise invalid(self.root / "DataPython" / "cam_pose" / f"{name}.npy", "cam_pose",
                               f"{pose.size} values", "3 values (x, y, z of the camera)")
-            n = len(gt) // 2
+            n, n_src = len(gt) // 2, gt_path
             lay = dataset_to_layout(gt - pose.reshape(1, 3))
             corners = np.stack([lay[:n], lay[n:]], 1)                  # (N, 2, 3) layout frame
             corners_cam = corners @ np.asarray(UPRIGHT_TO_WORLD)         # -> OpenCV camera frame (R^T)
-        out["corners_cam"] = torch.from_numpy(corners_cam).float()
+        out["corners_cam"] = pad_corners(corners_cam, self.max_walls, cor_path if n_src is None else n_src)
         out["num_walls"] = torch.tensor(n)
         out["corner_heat"] = corner_heat(cor[0::2, 0] + 0.5, W)
         em = None

@@ -26,7 +26,8 @@ def test_roundtrip_through_writer(engine_sample, tmp_path):
     s = ds[0]
     n = int(engine_sample["num_walls"])
     # frame adapter: 3D_gt - cam_pose in the dataset frame comes back as the engine's camera-frame corners
-    assert torch.allclose(s["corners_cam"], engine_sample["corners_cam"][:n], atol=1e-4)
+    assert s["corners_cam"].shape == (32, 2, 3) and int(s["num_walls"]) == n and (s["corners_cam"][n:] == 0).all()
+    assert torch.allclose(s["corners_cam"][:n], engine_sample["corners_cam"][:n], atol=1e-4)
     v = engine_sample["boundary_valid"] & s["boundary_valid"]
     assert v.float().mean() > 0.9
     assert torch.allclose(s["boundary"][v], engine_sample["boundary"][v], atol=1e-3)
@@ -92,7 +93,8 @@ def test_label_cor_only_mode_matches_the_full_labels(engine_sample, tmp_path):
     s = ds[0]
     assert "depth" not in s and "edges" not in s and s["image"].shape == full["image"].shape
     assert torch.equal(s["corner_heat"], full["corner_heat"]) and int(s["num_walls"]) == int(full["num_walls"])
-    got, want = s["corners_cam"].reshape(-1, 3), full["corners_cam"].reshape(-1, 3)
+    n = int(full["num_walls"])
+    got, want = s["corners_cam"][:n].reshape(-1, 3), full["corners_cam"][:n].reshape(-1, 3)
     assert torch.cdist(got, want).min(1).values.max() < 0.05             # same corners (label_cor has 2 decimals)
     v = s["boundary_valid"] & full["boundary_valid"]
     assert v.float().mean() > 0.95 and (s["boundary"][v] - full["boundary"][v]).abs().max() < 0.2
@@ -132,3 +134,33 @@ def test_skip_corrupt_counts_every_skip_and_whole_passes(tmp_path):
     assert [every[i] for i in range(3)] == [None, None, None]
     with pytest.raises(TooManyCorruptSamples, match=r"all 4 samples read in a row.*f3\.png"):
         every[3]
+
+
+def test_splits_size_check_and_padding(engine_sample, tmp_path):
+    """Split lists (root/split/<split>.txt, split_file), a listed name without an image, the size check and the
+    corners_cam padding (max_walls)."""
+    from omnidl.synth.export import sample_name, write_sample
+    names = [sample_name("noncentral", i, 1.0) for i in range(3)]
+    for n in names:
+        write_sample(tmp_path, "noncentral", n, engine_sample)
+    (tmp_path / "split").mkdir()
+    (tmp_path / "split" / "val.txt").write_text(f"{names[2]}\n# a comment\n{names[0]}\n")
+    ds = NonCentralIndoorDataset(tmp_path, split="val", depth=False)
+    assert ds.names == [names[2], names[0]] and ds.root == tmp_path
+    assert NonCentralIndoorDataset(tmp_path, split="val", max_samples=1).names == [names[2]]
+    one = tmp_path / "one.txt"
+    one.write_text(names[1] + "\n")
+    assert NonCentralIndoorDataset(tmp_path, split="val", split_file=one).names == [names[1]]
+    with pytest.raises(FileNotFoundError, match=r"no split file for split 'test'.*split/test\.txt"):
+        NonCentralIndoorDataset(tmp_path, split="test")
+    one.write_text("SYN09999_R10000\n")
+    with pytest.raises(FileNotFoundError, match=r"1 listed name\(s\) have no image .*\['SYN09999_R10000'\]"):
+        NonCentralIndoorDataset(tmp_path, split_file=one)
+    with pytest.raises(ValueError, match=r"img/SYN00000_R10000\.png: image is 128x64, expected 256x128"):
+        NonCentralIndoorDataset(tmp_path, width=256, height=128)[0]
+    n = int(engine_sample["num_walls"])
+    s = NonCentralIndoorDataset(tmp_path, width=128, height=64, max_walls=n)[0]
+    assert s["corners_cam"].shape == (n, 2, 3)
+    with pytest.raises(ValueError, match=rf"3D_gt/SYN00000_R10000\.npy: room polygon has {n} corners, more than "
+                                         rf"max_walls={n - 1}"):
+        NonCentralIndoorDataset(tmp_path, max_walls=n - 1)[0]
