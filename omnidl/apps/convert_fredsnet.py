@@ -234,23 +234,46 @@ def load_official_checkpoint(path: str, map_location: str | torch.device = "cpu"
     kwargs = dict(num_classes=int(kargs.get("num_classes", 14)), backbone=kargs.get("backbone", "resnet50"),
                   width=1.0, semantic_bn_relu=True)
     kwargs.update(model_kwargs)
+    if not sd:
+        raise ValueError(f"{path!r}: the state dict is empty; expected the official FreDSNet weights")
+    try:
+        converted = convert_state_dict(sd)
+    except KeyError as exc:
+        raise ValueError(f"{path!r} does not look like the official FreDSNet checkpoint: {exc.args[0]}") from None
     model = FreDSNet(**kwargs)
-    model.load_state_dict(convert_state_dict(sd), strict=True)
+    try:
+        model.load_state_dict(converted, strict=True)
+    except RuntimeError as exc:
+        raise ValueError(f"{path!r}: the converted weights do not fit FreDSNet({kwargs}): {str(exc)[:600]}") from None
     return model, ckpt.get("args") if "state_dict" in ckpt else None
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
+    import sys
+    from pathlib import Path
+
     from omnidl.utils.io import atomic_torch_save
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m omnidl.apps.convert_fredsnet", description=__doc__.split("\n\n")[0])
     ap.add_argument("official", help="official FreDSNet checkpoint (.pth)")
     ap.add_argument("output", help="where to write {'model_kwargs', 'state_dict'} for omnidl")
     ap.add_argument("--unsafe-pickle", action="store_true", help="torch.load(weights_only=False): trusted files only")
     a = ap.parse_args(argv)
-    model, args = load_official_checkpoint(a.official, weights_only=not a.unsafe_pickle)
+    if Path(a.output).resolve() == Path(a.official).resolve():
+        print(f"error: the output {a.output} is the official checkpoint itself; give another path", file=sys.stderr)
+        return 2
+    if Path(a.output).is_dir():
+        print(f"error: the output {a.output} is a folder; give a file path (e.g. fredsnet_omnidl.pth)", file=sys.stderr)
+        return 2
+    try:
+        model, args = load_official_checkpoint(a.official, weights_only=not a.unsafe_pickle)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     kwargs = dict(num_classes=model.num_classes, backbone=model.backbone.name, width=1.0, semantic_bn_relu=True)
     atomic_torch_save(a.output, {"model_kwargs": kwargs, "state_dict": model.state_dict(), "official_args": args})
     print(f"wrote {a.output}: build with create_model('fredsnet', **{kwargs})")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -65,7 +65,7 @@ def load_holinet(checkpoint: str | Path, device: str = "cpu") -> tuple[torch.nn.
     """
     from omegaconf import OmegaConf
 
-    from omnidl.engine.checkpoint import load_checkpoint
+    from omnidl.engine.checkpoint import load_checkpoint, load_model_weights
     from omnidl.models import create_model
     ckpt = load_checkpoint(checkpoint, map_location=device)
     cfg = ckpt.get("config")
@@ -75,8 +75,13 @@ def load_holinet(checkpoint: str | Path, device: str = "cpu") -> tuple[torch.nn.
     conf = OmegaConf.create(cfg)
     mcfg = OmegaConf.to_container(conf.model, resolve=True)
     name = mcfg.pop("name", "holinet")
+    mcfg.pop("_target_", None)
+    if name != "holinet":
+        raise ValueError(f"checkpoint {checkpoint} holds a {name!r} model (config model.name); the gyroscope's "
+                         "--checkpoint needs a HoLiNet (python train.py model=holinet or holinet_small), which "
+                         "predicts the horizon and vanishing points. Without one, run with --assume-upright")
     model = create_model(name, **mcfg)
-    model.load_state_dict(ckpt["model"])
+    load_model_weights(model, ckpt, checkpoint)
     height = int(OmegaConf.select(conf, "data.height", default=128) or 128)
     return model.to(device).eval(), height
 
@@ -130,6 +135,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for flag, value, low in (("--height", args.height, 8), ("--batch-size", args.batch_size, 1),
+                             ("--limit", args.limit, 0), ("--mpp-level", args.mpp_level, 0),
+                             ("--pvg-level", args.pvg_level, 0)):
+        if value < low:
+            print(f"error: {flag} must be >= {low}, got {value}", file=sys.stderr)
+            return 2
+    if not (args.lambda_g >= 0 and np.isfinite(args.lambda_g)):
+        print(f"error: --lambda-g must be a finite number >= 0, got {args.lambda_g}", file=sys.stderr)
+        return 2
     try:
         files = list_frames(args.frames)
     except FileNotFoundError as e:
@@ -154,8 +168,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if reference is None:
         print(f"error: could not read the reference image {ref_path}", file=sys.stderr)
         return 2
+    if args.checkpoint and args.assume_upright:
+        print("error: give either --checkpoint or --assume-upright, not both", file=sys.stderr)
+        return 2
     if args.checkpoint:
-        model, mh = load_holinet(args.checkpoint, args.device)
+        try:
+            model, mh = load_holinet(args.checkpoint, args.device)
+        except (ValueError, RuntimeError, FileNotFoundError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
         horizon_fn = model_horizon_fn(model, mh)
     elif args.assume_upright:
         horizon_fn = None
@@ -197,8 +218,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 video["writer"].write(both)
 
     frames = (_read(p) for p in files)
-    records = stabilise(frames, reference, horizon_fn=horizon_fn, options=opts, names=names,
-                        batch_size=args.batch_size, on_frame=on_frame, progress=True)
+    try:
+        records = stabilise(frames, reference, horizon_fn=horizon_fn, options=opts, names=names,
+                            batch_size=args.batch_size, on_frame=on_frame, progress=True)
+    except ValueError as e:  # the reference frame cannot be used (black/flat, not an equirectangular panorama)
+        print(f"error: reference frame {ref_path}: {e}", file=sys.stderr)
+        return 2
     if video["writer"] is not None:
         import cv2
         video["writer"].release()
@@ -223,6 +248,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     atomic_write_text(out / "rotations.csv", buf.getvalue())
     plot_angles(records, out / "angles.png")
     ok = sum(r.status == "ok" for r in records)
+    for r in records:
+        if r.status != "ok":
+            log.warning("frame %s: no estimate (%s)", r.name, r.reason)
     print(f"{ok}/{len(records)} frames stabilised; results in {out}")
     return 0
 

@@ -5,8 +5,12 @@ job's experiment code (``name`` in its ``.hydra/config.yaml``, set by the experi
 Hydra overrides. Columns are the scalar metrics, in the order of Tables 4.1–4.6 when present
 (MRE, MAE, RMSE, RMSElog, δ¹, δ², δ³, mIoU, mAcc) and alphabetically after that.
 Writes ``results.md`` and ``results.csv``; when jobs report metrics per rotation angle
-(a ``rotation`` mapping ``angle -> metrics`` in ``metrics.json``), also ``rotation.png`` — one curve per
-job and metric, as Fig. 4.5.
+(a ``rotation`` mapping ``angle -> metrics`` in ``metrics.json``), also ``rotation.png`` — as Fig. 4.5, one
+panel per unit (metres, fractions, ...), one curve per job and metric, the legend beside the panels.
+
+Units: omnidl's metrics are fractions (mIoU 0.42, not 42); ``results.csv`` keeps them so. Only the printed
+thesis-style table (``results.md`` and the terminal) shows mIoU and mAcc in percent, in columns labelled (%).
+A fraction metric above 1 (a job that wrote percent) is reported on stderr.
 """
 from __future__ import annotations
 
@@ -28,6 +32,25 @@ PRETTY = {"mre": "MRE", "mae": "MAE", "rmse": "RMSE", "rmse_log": "RMSElog", "rm
           "delta2": "δ²", "delta3": "δ³", "miou": "mIoU", "macc": "mAcc", "ce": "CE", "cen": "CEN",
           "iou3d": "3D IoU", "iou2d": "2D IoU"}
 LOWER_IS_BETTER = {"mre", "mae", "rmse", "rmse_log", "rmselog", "ce", "cen", "loss"}
+#: fraction metrics the printed table shows in percent (as the thesis' tables do)
+PERCENT = {"miou", "macc"}
+#: metrics whose values are fractions in [0, 1]
+FRACTIONS = {"delta1", "delta2", "delta3", "miou", "macc", "pixel_acc", "layout_fail_rate", "covered_fraction"}
+#: the unit of each metric (the rotation plot draws one panel per unit)
+UNITS = {"mae": "metres", "rmse": "metres", "ce": "metres", "rmse_log": "log metres", "rmselog": "log metres",
+         "mre": "relative error", **{k: "fraction" for k in FRACTIONS}}
+
+
+def metric_unit(key: str) -> str:
+    """``"metres"``, ``"fraction"``, ``"degrees"``, ... for a metric key (its last ``/`` part)."""
+    s = _short(key)
+    if s in UNITS:
+        return UNITS[s]
+    if s.endswith("_deg") or s.endswith("_err_deg"):
+        return "degrees"
+    if s.endswith("_m"):
+        return "metres"
+    return s  # unknown unit: a panel of its own
 
 
 def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
@@ -90,7 +113,11 @@ def collect(root: str | Path) -> list[dict[str, Any]]:
         except (OSError, json.JSONDecodeError) as exc:
             print(f"report: skipping {job / 'metrics.json'}: {exc}", file=sys.stderr)
             continue
-        rotation = raw.pop("rotation", None) if isinstance(raw, dict) else None
+        if not isinstance(raw, dict):
+            print(f"report: skipping {job / 'metrics.json'}: expected a JSON object of metrics, got "
+                  f"{type(raw).__name__}", file=sys.stderr)
+            continue
+        rotation = raw.pop("rotation", None)
         flat = {k: v for k, v in flatten(raw).items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
         records.append({"name": _job_name(job, root), "path": str(job), "metrics": flat,
                         "rotation": rotation if isinstance(rotation, dict) else None})
@@ -99,11 +126,22 @@ def collect(root: str | Path) -> list[dict[str, Any]]:
     return records
 
 
+def check_fractions(records: list[dict[str, Any]]) -> list[str]:
+    """Messages for fraction metrics outside [0, 1] (e.g. a job that wrote mIoU in percent); printed on stderr."""
+    out = []
+    for r in records:
+        for k, v in r["metrics"].items():
+            if _short(k) in FRACTIONS and isinstance(v, (int, float)) and math.isfinite(v) and not 0 <= v <= 1:
+                out.append(f"report: warning: {r['path']}: {k} = {v} is outside [0, 1]; omnidl writes fractions "
+                           "(was it written in percent?)")
+    return out
+
+
 def table(records: list[dict[str, Any]], columns: list[str] | None = None,
-          all_metrics: bool = False) -> tuple[list[str], list[list[str]]]:
+          all_metrics: bool = False, percent: bool = False) -> tuple[list[str], list[list[str]]]:
     """Header and rows. By default only the thesis' table metrics (MRE ... mAcc, layout CE/IoU) are columns,
     taken from the final validation (``final/``) or evaluation (``metrics/``) results; ``all_metrics`` keeps
-    every scalar."""
+    every scalar. ``percent``: mIoU/mAcc as percentages (the printed table; the header then says (%))."""
     keys = columns or _order(sorted({k for r in records for k in r["metrics"]}))
     if not columns and not all_metrics:
         chosen: dict[str, str] = {}
@@ -118,18 +156,44 @@ def table(records: list[dict[str, Any]], columns: list[str] | None = None,
         row = [r["name"]]
         for k in keys:
             v = r["metrics"].get(k)
-            row.append("-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}")
+            if v is None or (isinstance(v, float) and math.isnan(v)):
+                row.append("-")
+            elif percent and _short(k) in PERCENT:
+                row.append(f"{100 * v:.2f}")
+            else:
+                row.append(f"{v:.4f}")
         rows.append(row)
     return header, rows
 
 
-def to_markdown(header: list[str], rows: list[list[str]]) -> str:
-    arrows = [PRETTY.get(_short(h), h) + (" ↓" if _short(h) in LOWER_IS_BETTER else " ↑" if _short(h) in PREFERRED
-                                           else "") for h in header]
+def to_markdown(header: list[str], rows: list[list[str]], percent: bool = True) -> str:
+    """The printed table; with ``percent`` (rows made by ``table(..., percent=True)``) mIoU/mAcc say (%)."""
+    def label(h: str) -> str:
+        s = _short(h)
+        unit = " (%)" if percent and s in PERCENT else ""
+        return PRETTY.get(s, h) + unit + (" ↓" if s in LOWER_IS_BETTER else " ↑" if s in PREFERRED else "")
+    arrows = [label(h) for h in header]
     arrows[0] = header[0]
     lines = ["| " + " | ".join(arrows) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
+
+
+def _angle(a: Any) -> float:
+    try:
+        return float(a)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def rotation_panels(records: list[dict[str, Any]]) -> dict[str, list[str]]:
+    """``unit -> metric keys`` of the jobs' rotation results: one panel of the rotation plot per unit."""
+    names = _order(sorted({k for r in records if r["rotation"] for m in r["rotation"].values() if isinstance(m, dict)
+                           for k, v in flatten(m).items() if isinstance(v, (int, float)) and not isinstance(v, bool)}))
+    groups: dict[str, list[str]] = {}
+    for m in names:
+        groups.setdefault(metric_unit(m), []).append(m)
+    return groups
 
 
 def plot_rotation(records: list[dict[str, Any]], path: Path) -> bool:
@@ -140,25 +204,32 @@ def plot_rotation(records: list[dict[str, Any]], path: Path) -> bool:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    metric_names = _order(sorted({k for r in rot for m in r["rotation"].values() for k in flatten(m)
-                                  if isinstance(flatten(m)[k], (int, float))}))
-    n = len(metric_names)
-    cols = min(4, n)
-    rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
-    for ax, m in zip(axes.flat, metric_names):
-        for r in rot:
-            pts = sorted((float(a), flatten(v).get(m)) for a, v in r["rotation"].items())
-            pts = [(a, v) for a, v in pts if isinstance(v, (int, float))]
-            if pts:
-                ax.plot(*zip(*pts), marker="o", label=r["name"])
-        ax.set_title(m)
+    groups = rotation_panels(rot)
+    n = len(groups)
+    cols = min(3, n)
+    nrows = math.ceil(n / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 4.8 * nrows), squeeze=False)
+    styles = ["-", "--", ":", "-."]
+    markers = "osD^v<>px*"
+    for ax, (unit, names) in zip(axes.flat, groups.items()):
+        for j, r in enumerate(rot):
+            for i, m in enumerate(names):
+                pts = sorted((_angle(a), flatten(v).get(m)) for a, v in r["rotation"].items() if isinstance(v, dict))
+                pts = [(a, v) for a, v in pts if math.isfinite(a) and isinstance(v, (int, float))]
+                if pts:
+                    label = PRETTY.get(_short(m), m) + (f" ({r['name']})" if len(rot) > 1 else "")
+                    ax.plot(*zip(*pts), marker=markers[i % len(markers)], linestyle=styles[j % len(styles)],
+                            color=f"C{i % 10}", label=label)
+        ax.set_title(unit)
+        ax.set_ylabel(unit)
         ax.set_xlabel("rotation (deg)")
+        ax.grid(alpha=0.3)
+        # the legend goes below each panel, off the curves
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False, handlelength=3.5)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    axes.flat[0].legend(fontsize=7)
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight"))
     plt.close(fig)
     return True
 
@@ -166,9 +237,12 @@ def plot_rotation(records: list[dict[str, Any]], path: Path) -> bool:
 def write_report(root: str | Path, out: str | Path | None = None, all_metrics: bool = False) -> dict[str, Path]:
     """Collect ``root`` and write ``results.md``, ``results.csv`` (and ``rotation.png``) into ``out`` (default root)."""
     records = collect(root)
+    for msg in check_fractions(records):
+        print(msg, file=sys.stderr)
     out = Path(out or root)
-    header, rows = table(records, all_metrics=all_metrics)
+    header, rows = table(records, all_metrics=all_metrics, percent=True)
     written = {"markdown": atomic_write_text(out / "results.md", to_markdown(header, rows))}
+    header, rows = table(records, all_metrics=all_metrics)  # results.csv: fractions, as omnidl writes them
     buf = io.StringIO()
     csv.writer(buf).writerows([header] + rows)
     written["csv"] = atomic_write_text(out / "results.csv", buf.getvalue())

@@ -1,8 +1,9 @@
 """Ax Bayesian search of loss weights (and any numeric config value), driven through ``ax.Client``."""
-from .driver import SearchResult, TrialRecord, load_records, run_search
+from .driver import SearchResult, SearchStateError, TrialRecord, load_records, run_search
 from .space import Parameter, SearchConfigError, SearchSpec, parse_search_spec
 
-__all__ = ["SearchResult", "TrialRecord", "load_records", "run_search", "Parameter", "SearchConfigError",
+__all__ = ["SearchResult", "SearchStateError", "TrialRecord", "load_records", "run_search", "Parameter",
+           "SearchConfigError",
            "SearchSpec", "parse_search_spec", "run_search_from_config"]
 
 

@@ -9,6 +9,9 @@ Crash safety:
   right after a trial is suggested (so a crash leaves it RUNNING);
 * on resume, a trial found RUNNING is marked failed and its parameters are attached again as a new
   trial, which runs first — the search resumes *at* the interrupted trial;
+* a resume must be the same search: the spec's :meth:`~SearchSpec.signature` (objective, parameters, fixed
+  values, constraints, overrides) is saved beside the state (``<stem>_spec.json``) and compared, and the Ax
+  experiment's direction is checked; an unreadable state file is a :class:`SearchStateError` naming it;
 * an exception raised by ``evaluate`` marks that trial failed (reason recorded) and the search goes on;
   ``KeyboardInterrupt``/``SystemExit`` propagate (that is a crash, not a failed trial).
 """
@@ -29,6 +32,13 @@ from .space import SearchSpec
 log = logging.getLogger(__name__)
 
 OBJECTIVE = "objective"
+
+
+class SearchStateError(ValueError):
+    """A saved search cannot be resumed: its state file is unreadable, or the search config changed."""
+
+
+_RESTART_HINT = "run with search.restart=true to start the search over (or set another search.dir)"
 
 
 @dataclass
@@ -101,7 +111,8 @@ def _to_keys(spec: SearchSpec, ax_params: Mapping[str, Any]) -> dict[str, float]
 
 def run_search(spec: SearchSpec, evaluate: Callable[[dict[str, float], int], Mapping[str, float]],
                state_path: str | os.PathLike, restart: bool = False, progress: bool = True,
-               on_trial_end: Callable[[TrialRecord], None] | None = None) -> SearchResult:
+               on_trial_end: Callable[[TrialRecord], None] | None = None,
+               resume_override: bool = False) -> SearchResult:
     """Run (or resume) a search until ``spec.trials`` trials have completed.
 
     Args:
@@ -110,15 +121,23 @@ def run_search(spec: SearchSpec, evaluate: Callable[[dict[str, float], int], Map
             (and ``spec.fixed``) to values.
         state_path: JSON file holding the Ax experiment; resumed from if it exists (unless ``restart``).
         on_trial_end: called with each finished (completed or failed) trial record.
+        resume_override: resume even if the search config (objective, parameters, fixed values,
+            constraints, per-trial overrides) differs from the saved one (a warning instead of an error).
+
+    Raises:
+        SearchStateError: the state file (or its side files) cannot be read, or the saved search was run
+            with another objective / parameters (unless ``resume_override``).
     """
     _quiet_ax()
     state_path = Path(state_path)
     records: dict[int, TrialRecord] = {}
     pending: list[dict[str, float]] = []
-    if state_path.exists() and not restart:
-        from ax import Client
-        client = Client.load_from_json_file(str(state_path))
+    resuming = state_path.exists() and not restart
+    if resuming:
+        check_same_search(spec, state_path, resume_override)
+        client = _load_client(state_path)
         client._random_seed = spec.seed  # not restored by load_from_json_file
+        _check_direction(client, spec, state_path, resume_override)
         for idx, trial in sorted(_trials(client).items()):
             if _status(trial) == "RUNNING":
                 log.warning("search: trial %d was running when the last process stopped; marking it failed and "
@@ -129,7 +148,8 @@ def run_search(spec: SearchSpec, evaluate: Callable[[dict[str, float], int], Map
     else:
         client = _new_client(spec)
         _save(client, state_path)
-    _load_records(client, spec, records, state_path)
+    atomic_write_json(_spec_path(state_path), spec.signature())
+    _load_records(client, spec, records, state_path, use_saved=resuming)
 
     def n_completed() -> int:
         return sum(1 for t in _trials(client).values() if _status(t) == "COMPLETED")
@@ -190,13 +210,85 @@ def _records_path(state_path: Path) -> Path:
     return state_path.with_name(state_path.stem + "_trials.json")
 
 
+def _spec_path(state_path: Path) -> Path:
+    return state_path.with_name(state_path.stem + "_spec.json")
+
+
+def _read_json(path: Path, what: str) -> Any:
+    import json
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SearchStateError(f"search state file {path} ({what}) is not valid JSON ({exc}); it was probably "
+                               f"cut short by a crash or edited by hand: restore it, or {_RESTART_HINT}") from exc
+
+
+def _load_client(state_path: Path):
+    """The Ax client saved in ``state_path``; a :class:`SearchStateError` naming the file if it is unreadable."""
+    from ax import Client
+    _read_json(state_path, "the Ax experiment")
+    try:
+        return Client.load_from_json_file(str(state_path))
+    except Exception as exc:  # valid JSON, but not an Ax experiment
+        raise SearchStateError(f"search state file {state_path} is not a saved Ax experiment "
+                               f"({type(exc).__name__}: {str(exc)[:200]}); {_RESTART_HINT}") from exc
+
+
+def _differences(old: Any, new: Any, prefix: str = "search") -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new), key=str):
+            out += _differences(old.get(k, "<absent>"), new.get(k, "<absent>"), f"{prefix}.{k}")
+        return out
+    return [] if old == new else [f"{prefix}: saved {old!r}, now {new!r}"]
+
+
+def check_same_search(spec: SearchSpec, state_path: str | os.PathLike, resume_override: bool = False) -> None:
+    """Compare ``spec`` with the signature saved beside ``state_path`` (``<stem>_spec.json``).
+
+    A changed objective (metrics, weights, direction), parameter range, fixed value, constraint or
+    per-trial override would mix trials of two different searches and pick the best by the new rule:
+    :class:`SearchStateError` listing the changes, or only a warning with ``resume_override``."""
+    path = _spec_path(Path(state_path))
+    if not path.exists():
+        return  # a search saved before signatures existed: only the Ax direction can be checked
+    saved = _read_json(path, "the search config it was started with")
+    diff = _differences(saved, spec.signature())
+    if not diff:
+        return
+    msg = (f"search {spec.name}: the saved search in {Path(state_path).parent} was run with another config: "
+           + "; ".join(diff))
+    if resume_override:
+        log.warning("%s (resuming anyway: search.resume_override=true)", msg)
+        return
+    raise SearchStateError(f"{msg}. Resuming would mix trials of two searches; {_RESTART_HINT}, or pass "
+                           "search.resume_override=true to resume anyway")
+
+
+def _check_direction(client, spec: SearchSpec, state_path: Path, resume_override: bool) -> None:
+    """The saved Ax experiment's optimisation direction must be the config's."""
+    try:
+        saved_min = bool(client._experiment.optimization_config.objective.minimize)
+    except AttributeError:  # pragma: no cover - an Ax without this attribute: nothing to compare
+        return
+    if saved_min == spec.minimize:
+        return
+    msg = (f"search {spec.name}: the experiment in {state_path} {'minimises' if saved_min else 'maximises'} the "
+           f"objective but search.objective.minimize={str(spec.minimize).lower()}")
+    if resume_override:
+        log.warning("%s (resuming anyway: search.resume_override=true)", msg)
+        return
+    raise SearchStateError(f"{msg}; {_RESTART_HINT}")
+
+
 def _save_records(records: dict[int, TrialRecord], state_path: Path) -> None:
     atomic_write_json(_records_path(state_path), [vars(r) for r in sorted(records.values(), key=lambda r: r.index)])
 
 
-def _load_records(client, spec: SearchSpec, records: dict[int, TrialRecord], state_path: Path) -> None:
+def _load_records(client, spec: SearchSpec, records: dict[int, TrialRecord], state_path: Path,
+                  use_saved: bool = True) -> None:
     """Rebuild trial records from the Ax experiment, with metrics from the side file when present."""
-    saved = {r["index"]: r for r in load_records(state_path)}
+    saved = {r["index"]: r for r in load_records(state_path)} if use_saved else {}
     values = {}
     data = client._experiment.lookup_data().df
     for _, row in data.iterrows():
@@ -211,9 +303,14 @@ def _load_records(client, spec: SearchSpec, records: dict[int, TrialRecord], sta
 
 def load_records(state_path: str | os.PathLike) -> list[dict]:
     """The per-trial records (params, status, objective, metrics) saved beside the state file."""
-    import json
     p = _records_path(Path(state_path))
-    return json.loads(p.read_text()) if p.exists() else []
+    if not p.exists():
+        return []
+    records = _read_json(p, "the per-trial records")
+    if not isinstance(records, list) or not all(isinstance(r, dict) and "index" in r for r in records):
+        raise SearchStateError(f"search state file {p} (the per-trial records) should hold a list of trial "
+                               f"records with an 'index'; got {str(records)[:80]!r}: restore it, or {_RESTART_HINT}")
+    return records
 
 
 def _result(spec: SearchSpec, records: dict[int, TrialRecord]) -> SearchResult:

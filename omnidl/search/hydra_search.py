@@ -10,6 +10,11 @@ starts over). At the end it writes
   ``python train.py loss=<name>_best`` (also copied into the search folder);
 * ``trials.csv`` / ``trials.md`` — every trial with its parameters, status and objective;
 * ``objective.png`` — the objective per trial and the best so far.
+
+Each trial folder (``trial_NNN``) keeps its ``metrics.json`` and logs; ``search.keep_checkpoints`` says which
+weights stay (default ``best_trial``: a weights-only ``best.pt`` of the best trial; see
+:mod:`omnidl.search.trial_files`). Resuming with another objective, parameter range, fixed value or per-trial
+override is an error (``search.resume_override=true`` resumes anyway; ``search.restart=true`` starts over).
 """
 from __future__ import annotations
 
@@ -26,7 +31,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omnidl.utils.io import atomic_write, atomic_write_text
 
 from .driver import SearchResult, TrialRecord, run_search
-from .space import SearchSpec, parse_search_spec
+from .space import SearchConfigError, SearchSpec, parse_search_spec
+from .trial_files import check_keep, drop_other_bests, prune_trial
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +69,11 @@ def _task_overrides() -> tuple[str | None, list[str]]:
     return hc.job.config_name, choices + keep
 
 
+def trial_dir(search_dir: Path, idx: int) -> Path:
+    """The output folder of trial ``idx``."""
+    return Path(search_dir) / f"trial_{idx:03d}"
+
+
 def make_trial_config_fn(base: DictConfig, spec: SearchSpec, search_dir: Path) -> Callable[[dict, int], DictConfig]:
     """Return ``fn(params, idx) -> DictConfig`` building one trial's training config from ``base`` (the
     training config without its ``search`` node), through Hydra's compose API inside a Hydra app."""
@@ -70,7 +81,7 @@ def make_trial_config_fn(base: DictConfig, spec: SearchSpec, search_dir: Path) -
 
     def trial_overrides(params: dict, idx: int) -> list[str]:
         out = list(spec.overrides) + [f"{k}={_format(v)}" for k, v in params.items()]
-        out.append(f"paths.output_dir={(search_dir / f'trial_{idx:03d}').as_posix()}")
+        out.append(f"paths.output_dir={trial_dir(search_dir, idx).as_posix()}")
         return out
 
     def compose_fn(params: dict, idx: int) -> DictConfig:
@@ -118,19 +129,43 @@ def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dic
     spec = parse_search_spec(cfg.search, train_cfg)  # fails here, before any training, on a bad key/range
     search_dir = Path(cfg.search.get("dir") or f"outputs/search/{spec.name}")
     restart = bool(cfg.search.get("restart", False))
+    resume_override = bool(cfg.search.get("resume_override", False))
+    try:
+        keep = check_keep(cfg.search.get("keep_checkpoints", "best_trial"))
+    except ValueError as exc:
+        raise SearchConfigError(str(exc)) from None
     if train_fn is None:
         from omnidl.engine import train as train_fn  # type: ignore[no-redef]
     build = make_trial_config_fn(train_cfg, spec, search_dir)
+    best_so_far: dict[str, Any] = {}
+    if keep == "best_trial" and not restart:  # a resumed search: the best of the trials already done
+        from .driver import load_records
+        done = [r for r in load_records(search_dir / "experiment.json")
+                if r.get("status") == "COMPLETED" and r.get("objective") is not None]
+        if done:
+            b = (min if spec.minimize else max)(done, key=lambda r: r["objective"])
+            best_so_far.update(value=b["objective"], index=b["index"])
 
     def evaluate(params: dict, idx: int) -> dict:
         trial_cfg = build(params, idx)
         log.info("search %s: trial %d with %s", spec.name, idx, params)
-        return trial_metrics(train_fn(trial_cfg))
+        try:
+            return trial_metrics(train_fn(trial_cfg))
+        finally:
+            prune_trial(trial_dir(search_dir, idx), keep)
 
     def on_end(rec: TrialRecord) -> None:
+        if keep == "best_trial" and rec.status == "COMPLETED":
+            old = best_so_far.get("value")
+            if old is None or (rec.objective < old if spec.minimize else rec.objective > old):
+                best_so_far.update(value=rec.objective, index=rec.index)
+            drop_other_bests(search_dir, trial_dir(search_dir, best_so_far["index"]))
         write_reports(spec, None, search_dir, extra=rec)
 
-    result = run_search(spec, evaluate, search_dir / "experiment.json", restart=restart, on_trial_end=on_end)
+    result = run_search(spec, evaluate, search_dir / "experiment.json", restart=restart, on_trial_end=on_end,
+                        resume_override=resume_override)
+    if keep == "best_trial":
+        drop_other_bests(search_dir, trial_dir(search_dir, result.best_trial))
     write_reports(spec, result, search_dir)
     best_dir = Path(cfg.search.get("config_dir") or config_dir())
     best_cfg = build(result.best_params, result.best_trial)  # the best trial's own config (search overrides included)
@@ -163,8 +198,11 @@ def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: Di
         for key, val in result.best_params.items():
             if key.startswith("loss."):
                 OmegaConf.update(loss, key[len("loss."):], val, force_add=True)
+    objective = " ".join(f"{'+' if w >= 0 else '-'} {abs(w):g}*{m}" for m, w in spec.objective_metrics.items())
     header = (f"# Best loss weights found by the '{spec.name}' search (trial {result.best_trial}, objective "
-              f"{result.best_objective:.6g}). Use: python train.py loss={spec.name}_best\n")
+              f"{result.best_objective:.6g}). Use: python train.py loss={spec.name}_best\n"
+              f"# objective ({'minimised' if spec.minimize else 'maximised'}, metrics as fractions): "
+              f"{objective.lstrip('+ ')}\n")
     text = header + OmegaConf.to_yaml(loss, resolve=True)
     atomic_write_text(search_dir / f"{spec.name}_best.yaml", text)
     path = configs / "loss" / f"{spec.name}_best.yaml"

@@ -73,6 +73,17 @@ class SearchSpec:
             total += w * v
         return total
 
+    def signature(self) -> dict[str, Any]:
+        """What makes two runs the same search: the objective (metrics, weights, direction), the searched
+        parameters, the fixed values, the constraints and the per-trial overrides. A search may only be
+        resumed under the same signature (``trials``, ``sobol_trials`` and ``seed`` may change)."""
+        return {"objective": {"metrics": {k: float(v) for k, v in sorted(self.objective_metrics.items())},
+                              "minimize": bool(self.minimize)},
+                "parameters": {p.key: {"bounds": [p.low, p.high], "log": p.log, "int": p.integer}
+                               for p in self.parameters},
+                "fixed": {str(k): v for k, v in sorted(self.fixed.items())},
+                "constraints": list(self.constraints), "overrides": list(self.overrides)}
+
     def ax_constraints(self) -> list[str]:
         out = []
         for c in self.constraints:
@@ -99,7 +110,7 @@ def parse_search_spec(cfg: Mapping[str, Any], train_cfg: Any | None = None) -> S
     except ImportError:  # pragma: no cover
         pass
     known = {"name", "trials", "sobol_trials", "seed", "objective", "parameters", "fixed", "constraints",
-             "overrides", "max_failures", "dir", "restart", "config_dir"}
+             "overrides", "max_failures", "dir", "restart", "config_dir", "resume_override", "keep_checkpoints"}
     unknown = sorted(set(cfg) - known)
     if unknown:
         raise SearchConfigError(f"search: unknown key(s) {unknown}; expected some of {sorted(known)}")
@@ -125,22 +136,37 @@ def parse_search_spec(cfg: Mapping[str, Any], train_cfg: Any | None = None) -> S
             raise SearchConfigError(f"{where}.bounds: log scale needs a positive lower bound, got {lo}")
         params.append(Parameter(key=str(key), low=lo, high=hi, log=log, integer=bool(spec.get("int", False))))
     obj = cfg.get("objective") or {}
+    if not isinstance(obj, Mapping):
+        raise SearchConfigError(f"search.objective: expected a mapping with 'metrics' and 'minimize', got {obj!r}")
+    extra = sorted(set(obj) - {"metrics", "minimize"})
+    if extra:
+        raise SearchConfigError(f"search.objective: unknown field(s) {extra}; expected metrics, minimize")
     metrics = obj.get("metrics")
     if isinstance(metrics, str):
         metrics = {metrics: 1.0}
-    if not metrics:
+    if not metrics or not isinstance(metrics, Mapping):
         raise SearchConfigError("search.objective.metrics: name at least one validation metric (or a mapping "
-                                "metric -> weight)")
+                                f"metric -> weight), got {metrics!r}")
+    for k, w in metrics.items():
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
+            raise SearchConfigError(f"search.objective.metrics.{k}: expected a finite number (the metric's weight), "
+                                    f"got {w!r}")
+    if not isinstance(obj.get("minimize", False), bool):
+        raise SearchConfigError(f"search.objective.minimize: expected true or false, got {obj.get('minimize')!r}")
     spec = SearchSpec(
         name=str(cfg.get("name") or "search"), parameters=params,
         objective_metrics={str(k): float(v) for k, v in dict(metrics).items()},
-        minimize=bool(obj.get("minimize", False)), trials=int(cfg.get("trials", 20)),
-        sobol_trials=int(cfg.get("sobol_trials", 5)), seed=int(cfg.get("seed", 0)),
+        minimize=bool(obj.get("minimize", False)), trials=_int(cfg, "trials", 20),
+        sobol_trials=_int(cfg, "sobol_trials", 5), seed=_int(cfg, "seed", 0),
         fixed=dict(cfg.get("fixed") or {}), constraints=list(cfg.get("constraints") or []),
         overrides=[str(o) for o in (cfg.get("overrides") or [])],
-        max_failures=cfg.get("max_failures"))
+        max_failures=None if cfg.get("max_failures") is None else _int(cfg, "max_failures", 0))
     if spec.trials < 1:
         raise SearchConfigError(f"search.trials: must be >= 1, got {spec.trials}")
+    if spec.sobol_trials < 0:
+        raise SearchConfigError(f"search.sobol_trials: must be >= 0, got {spec.sobol_trials}")
+    if spec.max_failures is not None and spec.max_failures < 1:
+        raise SearchConfigError(f"search.max_failures: must be >= 1 (or null), got {spec.max_failures}")
     names = [p.key for p in params]
     for c in spec.constraints:
         if not any(n in c for n in names):
@@ -148,6 +174,13 @@ def parse_search_spec(cfg: Mapping[str, Any], train_cfg: Any | None = None) -> S
     if train_cfg is not None:
         check_keys_exist(train_cfg, names + list(spec.fixed))
     return spec
+
+
+def _int(cfg: Mapping[str, Any], key: str, default: int) -> int:
+    v = cfg.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v):
+        raise SearchConfigError(f"search.{key}: expected an integer, got {v!r}")
+    return int(v)
 
 
 def check_keys_exist(train_cfg: Any, keys: Sequence[str]) -> None:

@@ -60,3 +60,20 @@ def test_load_holinet_from_an_engine_checkpoint(tmp_path):
     assert h == 32
     hl, vp = model_horizon_fn(m2, h)(torch.rand(2, 3, 64, 128))
     assert hl.shape == vp.shape == (2, 1, 16, 32) and (hl >= 0).all() and (hl <= 1).all()
+
+
+def test_checkpoint_of_another_model_is_a_clear_error(tmp_path, capsys):
+    """Issue 14: a FreDSNet checkpoint gave KeyError: 'horizon' after the frames were read."""
+    import pytest
+    from omnidl.apps.gyroscope import load_holinet
+    from omnidl.engine.checkpoint import save_checkpoint
+    save_checkpoint(tmp_path / "fredsnet.pt", {"model": {"w": torch.zeros(1)},
+                                               "config": {"model": {"name": "fredsnet", "width": 0.0625}}})
+    with pytest.raises(ValueError, match=r"fredsnet\.pt holds a 'fredsnet' model.*HoLiNet.*--assume-upright"):
+        load_holinet(tmp_path / "fredsnet.pt")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    _write(frames / "e_000000.png", torch.rand(3, 16, 32))
+    assert main([str(frames), "--out", str(tmp_path / "out"), "--checkpoint", str(tmp_path / "fredsnet.pt")]) == 2
+    assert "holds a 'fredsnet' model" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

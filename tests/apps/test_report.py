@@ -29,3 +29,38 @@ def test_report_table_rows_and_codes(tmp_path):
 def test_report_cli_missing_folder(tmp_path, capsys):
     assert main([str(tmp_path / "nope")]) == 2
     assert "no such folder" in capsys.readouterr().err
+
+
+def test_units_percent_only_in_the_printed_table(tmp_path, capsys):
+    """Fractions in results.csv; mIoU/mAcc in percent in results.md, labelled (%); percent input is flagged."""
+    import csv
+    _job(tmp_path, 0, "F-Std-CE-X", {"final": {"val/mre": 0.2, "val/delta1": 0.61, "val/miou": 0.4237,
+                                               "val/macc": 0.5}})
+    _job(tmp_path, 1, "X-Std-CE-X", {"final": {"val/mre": 0.2, "val/delta1": 0.6, "val/miou": 42.0}})
+    written = write_report(tmp_path)
+    md = written["markdown"].read_text()
+    assert "mIoU (%) ↑" in md and "mAcc (%) ↑" in md and "| F-Std-CE-X | 0.2000 | 0.6100 | 42.37 | 50.00 |" in md
+    rows = list(csv.DictReader(open(written["csv"])))
+    assert rows[0]["final/val/miou"] == "0.4237" and rows[0]["final/val/delta1"] == "0.6100"
+    assert "val/miou = 42.0 is outside [0, 1]" in capsys.readouterr().err
+
+
+def test_rotation_plot_one_panel_per_unit(tmp_path):
+    from omnidl.apps.report import collect, rotation_panels
+    rot = {str(a): {"mre": 0.1 + a / 100, "mae": 0.3, "rmse": 0.5, "delta1": 0.8, "miou": 0.4, "rmse_log": 0.2}
+           for a in (0, 10, 20)}
+    _job(tmp_path, 0, "F-Std-CE-X", {"val": {"mre": 0.1}, "rotation": rot})
+    _job(tmp_path, 1, "F-Std-CE-X-r", {"val": {"mre": 0.1}, "rotation": {**rot, "bad": 3, "x": {"mre": 1}}})
+    panels = rotation_panels(collect(tmp_path))
+    assert panels == {"relative error": ["mre"], "metres": ["mae", "rmse"], "log metres": ["rmse_log"],
+                      "fraction": ["delta1", "miou"]}
+    written = write_report(tmp_path)
+    assert written["rotation"].stat().st_size > 1000
+
+
+def test_metrics_json_that_is_not_an_object_is_skipped(tmp_path, capsys):
+    _job(tmp_path, 0, "F-Std-CE-X", {"val": {"mre": 0.1}})
+    (tmp_path / "1").mkdir()
+    (tmp_path / "1" / "metrics.json").write_text("[1, 2]")
+    assert main([str(tmp_path)]) == 0
+    assert "expected a JSON object" in capsys.readouterr().err

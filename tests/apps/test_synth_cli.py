@@ -94,3 +94,48 @@ def test_horizonnet_export(tmp_path):
     with pytest.raises(SystemExit):
         main(["--camera", "equirect", "--n", "1", "--out", str(out), "--width", "64", "--height", "32",
               "--format", "horizonnet", "--rotation", "random"])
+
+
+# -- rerunning into an existing --out (issue 14: a second run with another size/seed mixed two datasets) --
+def _args(out, *extra, n=1, size=(32, 16), seed=0):
+    return ["--camera", "equirect", "--n", str(n), "--out", str(out), "--width", str(size[0]), "--height",
+            str(size[1]), "--seed", str(seed), "--format", "horizonnet", "--contact-sheet", "0", *extra]
+
+
+def _sizes(out):
+    return sorted({cv2.imread(str(p)).shape[:2] for p in (out / "img").glob("*.png")})
+
+
+def test_rerun_with_other_size_or_seed_is_an_error(tmp_path):
+    out = tmp_path / "hn"
+    assert main(_args(out)) == 0
+    manifest = json.loads((out / "synth.json").read_text())["settings"]
+    assert manifest["width"] == 32 and manifest["seed"] == 0 and manifest["format"] == "horizonnet"
+    with pytest.raises(SystemExit, match=r"other settings \(width: 32 there, 64 now; height: 16 there, 32 now\)"):
+        main(_args(out, n=2, size=(64, 32)))
+    with pytest.raises(SystemExit, match=r"seed: 0 there, 5 now.*--overwrite"):
+        main(_args(out, n=2, seed=5))
+    assert _sizes(out) == [(16, 32)] and len(list((out / "img").glob("*.png"))) == 1   # nothing was added
+
+
+def test_same_settings_extend_and_overwrite_replaces(tmp_path):
+    out = tmp_path / "hn"
+    assert main(_args(out)) == 0
+    assert main(_args(out, n=2)) == 0                       # same settings: resumed and extended
+    assert len(list((out / "img").glob("*.png"))) == 2
+    assert main(_args(out, "--overwrite", n=1, size=(64, 32), seed=5)) == 0
+    assert _sizes(out) == [(32, 64)] and len(list((out / "img").glob("*.png"))) == 1
+    assert json.loads((out / "synth.json").read_text())["settings"]["seed"] == 5
+
+
+def test_samples_without_manifest_are_not_mixed(tmp_path):
+    out = tmp_path / "hn"
+    assert main(_args(out)) == 0
+    (out / "synth.json").unlink()                           # e.g. a dataset written by an older omnidl
+    with pytest.raises(SystemExit, match=r"already holds 2 sample files .*synth_00000.* no synth\.json"):
+        main(_args(out, n=2))
+    (out / "notes.txt").write_text("a folder with unrelated files is fine")
+    empty = tmp_path / "other"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("x")
+    assert main(_args(empty)) == 0

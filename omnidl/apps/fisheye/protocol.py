@@ -20,7 +20,8 @@ Writes to ``out_dir``: ``results.csv`` (one row per stage/dataset/kernel), ``tab
 ``radial_<dataset>_{depth,semantic}.png`` (Figs 7.2/7.5) and ``radial_<dataset>_rectified_*.png``
 (Figs 7.8/7.9), ``summary.json`` (the Std-vs-Calib comparison at large radii), ``checkpoints/<stage>.pt``
 (a re-run skips stages whose checkpoint exists; ``--fresh`` retrains) and ``runs/<stage>/`` (the engine's
-run folders). Overrides are OmegaConf dot-list entries (``train.steps=50``).
+run folders). Overrides are OmegaConf dot-list entries (``train.steps=50``) of keys the config has (a typo is
+an error); ``+key=value`` adds a new key.
 """
 from __future__ import annotations
 
@@ -46,6 +47,9 @@ from .stages import CONFIG_DIR, compose_experiment, evaluate_stage, model_with, 
 from .tables import compare_large_radii, markdown_tables
 
 log = logging.getLogger("omnidl.apps.fisheye")
+#: what the numbers of results.csv / summary.json are (tables.md alone prints mIoU/mAcc in %, labelled)
+UNITS = ("fractions in [0, 1]: miou, macc, pixel_acc, delta1-3, covered_fraction, coverage; metres: mae, rmse; "
+         "relative: mre; rmse_log: log metres")
 REQUIRED = ("image", "panoramas", "experiments", "model", "loss", "train", "finetune")
 #: thesis colours: standard red, calibrated blue; baseline dashed, fine-tuned solid; rectified green
 STYLES = {"BL-Std": {"color": "tab:red", "linestyle": "--"}, "FT-Std": {"color": "tab:red"},
@@ -58,11 +62,25 @@ def load_config(path: str | None, overrides: list[str]) -> DictConfig:
     path = Path(path) if path else CONFIG_DIR / "fisheye" / "small_cpu.yaml"
     if not path.is_file():
         raise FileNotFoundError(f"protocol config {str(path)!r} does not exist")
-    cfg = OmegaConf.load(path)
     try:
-        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides))
+        cfg = OmegaConf.load(path)
+    except Exception as e:  # noqa: BLE001 - yaml's parser errors
+        raise ValueError(f"protocol config {str(path)!r} is not valid YAML: {e}") from e
+    if not isinstance(cfg, DictConfig):
+        raise ValueError(f"protocol config {str(path)!r} must be a mapping of sections, got a list")
+    for o in overrides:
+        if "=" not in o or not o.split("=", 1)[0].lstrip("+"):
+            raise ValueError(f"bad override {o!r} for {str(path)!r}: expected key=value (e.g. train.steps=50)")
+    OmegaConf.set_struct(cfg, True)  # an override of a key the config does not have (a typo) is an error...
+    plain = [o for o in overrides if not o.startswith("+")]
+    added = [o[1:] for o in overrides if o.startswith("+")]  # ...unless written +key=value (a new key)
+    try:
+        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(plain))
+        OmegaConf.set_struct(cfg, False)
+        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(added))
     except Exception as e:  # noqa: BLE001
-        raise ValueError(f"bad override in {overrides}: {e}") from e
+        raise ValueError(f"bad override in {overrides} for {str(path)!r} (write +key=value to add a key the "
+                         f"config does not have): {e}") from e
     for key in REQUIRED:
         if key not in cfg:
             raise KeyError(f"protocol config {str(path)!r} has no '{key}' section")
@@ -78,6 +96,8 @@ def run(cfg: DictConfig, out_dir: str | Path, fresh: bool = False, panoramas: di
     """
     t0 = time.time()
     out = Path(out_dir)
+    cfg = cfg.copy()
+    cfg.out_dir = str(out)  # ${out_dir} in the config (the panorama cache) follows --out
     seed = int(cfg.get("seed", 0))
     seed_everything(seed, num_threads=int(cfg.get("threads", 0)))
     banks = {split: PanoramaBank(panoramas[split] if panoramas is not None else
@@ -94,7 +114,8 @@ def run(cfg: DictConfig, out_dir: str | Path, fresh: bool = False, panoramas: di
     if cfg.get("plots", True):
         _plots(radial, tasks, out)
     comparison = compare_large_radii(radial, float(cfg.get("large_radius_fraction", 1 / 3)))
-    summary = {"rows": rows, "coverage": coverage, "comparison": comparison, "seconds": time.time() - t0,
+    summary = {"units": UNITS, "rows": rows, "coverage": coverage, "comparison": comparison,
+               "seconds": time.time() - t0,
                "config": OmegaConf.to_container(cfg, resolve=True)}
     atomic_write_json(out / "summary.json", summary)
     return {"rows": rows, "radial": radial, "coverage": coverage, "comparison": comparison}

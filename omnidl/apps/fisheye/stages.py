@@ -144,8 +144,8 @@ class CoveredFraction:
 def evaluate_stage(model: torch.nn.Module, dataset, tasks, batch_size: int, device: torch.device,
                    edges: list[float] | None) -> tuple[dict[str, float], list[dict], dict[str, float]]:
     """``(scalars, radial rows, extra)`` of ``model`` on ``dataset`` through the engine's validation loop:
-    depth metrics, segmentation scores in percent, the per-radius table and, for rectified models, the
-    covered fraction."""
+    depth metrics, segmentation scores (fractions in [0, 1], like every omnidl metric), the per-radius table
+    and, for rectified models, the covered fraction."""
     parts: dict[str, Any] = {"coverage": CoveredFraction()}
     if "depth" in tasks:
         parts["depth"] = DepthMetrics()
@@ -159,6 +159,6 @@ def evaluate_stage(model: torch.nn.Module, dataset, tasks, batch_size: int, devi
     if "depth" in parts:
         scalars.update({k: v for k, v in parts["depth"].compute().items() if k in DEPTH_METRICS})
     if "semantic" in parts:
-        scalars.update({k: 100 * v for k, v in parts["semantic"].compute().items() if k in SEG_KEYS})
+        scalars.update({k: v for k, v in parts["semantic"].compute().items() if k in SEG_KEYS})
     table = parts["radial"].table() if "radial" in parts else []
     return scalars, table, parts["coverage"].compute()

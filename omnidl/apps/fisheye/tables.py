@@ -2,18 +2,26 @@
 
 Rows are the protocol's ``results.csv`` rows: ``stage`` (``BL``/``FT``), ``dataset`` (``Pers``, a fisheye
 name, or ``<name>-R`` for the rectification baseline), ``kernel`` (``Std``/``Calib``) and the metrics.
+
+Units: every value in the rows (``results.csv``, ``summary.json``) is a fraction, as everywhere in omnidl;
+only these printed thesis-style tables show the segmentation scores in percent, in columns labelled (%).
 """
 from __future__ import annotations
 
 import math
 from typing import Any
 
-#: segmentation scores reported in the tables (percent)
+#: segmentation scores reported in the tables (fractions in the rows, percent in the printed tables)
 SEG_KEYS = ("miou", "macc")
 
 
 def _fmt(v: Any, nd: int = 4) -> str:
     return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
+
+
+def _pct(v: Any, nd: int = 2) -> str:
+    """A fraction printed as a percentage (without the sign: the column header says (%))."""
+    return _fmt(None if v is None else 100.0 * float(v), nd)
 
 
 def markdown_tables(rows: list[dict], tasks, coverage: dict[str, dict]) -> str:
@@ -31,22 +39,23 @@ def markdown_tables(rows: list[dict], tasks, coverage: dict[str, dict]) -> str:
                 + " |" for r in main]
         out.append("")
     if "semantic" in tasks:
-        out += ["### Semantic segmentation (Table 7.2 shape)", "", "| | Dataset | Kernel | mIoU | mAcc |",
+        out += ["### Semantic segmentation (Table 7.2 shape)", "", "| | Dataset | Kernel | mIoU (%) ↑ | mAcc (%) ↑ |",
                 "|---|---|---|---|---|"]
-        out += [f"| {r['stage']} | {r['dataset']} | {r['kernel']} | {_fmt(r.get('miou'), 2)} | "
-                f"{_fmt(r.get('macc'), 2)} |" for r in main]
+        out += [f"| {r['stage']} | {r['dataset']} | {r['kernel']} | {_pct(r.get('miou'))} | "
+                f"{_pct(r.get('macc'))} |" for r in main]
         out.append("")
     if any(r["dataset"].endswith("-R") for r in rows):
         out += ["### Rectification baseline (Tables 7.3/7.4 shape, standard convolutions)", "",
                 "| | Input | " + ("MRE ↓ | MAE ↓ | RMSE ↓ | δ1 ↑ | " if "depth" in tasks else "")
-                + ("mIoU | mAcc | " if "semantic" in tasks else "") + "pixels with a prediction |",
+                + ("mIoU (%) ↑ | mAcc (%) ↑ | " if "semantic" in tasks else "")
+                + "pixels with a prediction (fraction) |",
                 "|---|---|" + "---|" * ((4 if "depth" in tasks else 0) + (2 if "semantic" in tasks else 0) + 1)]
         for r in rect:
             cells = []
             if "depth" in tasks:
                 cells += [_fmt(r.get(k)) for k in ("mre", "mae", "rmse", "delta1")]
             if "semantic" in tasks:
-                cells += [_fmt(r.get(k), 2) for k in SEG_KEYS]
+                cells += [_pct(r.get(k)) for k in SEG_KEYS]
             cells.append(_fmt(r.get("covered_fraction", 1.0 if not r["dataset"].endswith("-R") else None), 3))
             out.append(f"| {r['stage']} | {r['dataset']} | " + " | ".join(cells) + " |")
         out.append("")

@@ -1,4 +1,4 @@
-"""Acceptance study of the geometric pipeline on noise-free synthetic rooms (issue 6).
+"""Acceptance study of the geometric pipeline on noise-free synthetic rooms.
 
 Rooms: floor plans of the data engine (:func:`omnidl.synth.sample_room`, Table A.2 limits, no
 furniture) with the engine's camera placement (:func:`omnidl.synth.place_camera`, upright, rig
@@ -11,6 +11,10 @@ of walls that no column sees (two or more consecutive hidden walls: the hidden p
 not observable, only the smallest consistent room can be recovered).
 
     python -m omnidl.apps.layout.acceptance --n 200 [--protocol both|all|thesis --width 1024 --rc 1.0 --out table.md]
+        [--all] [--no-progress]
+
+The printed tables have the thesis' columns (CE, CEN, 3D IoU, 2D IoU over every room, failures, time);
+``--all`` adds the occlusion breakdown (21 columns). CE in metres, CEN and IoU in %.
 """
 from __future__ import annotations
 
@@ -141,9 +145,29 @@ def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, p
     return rows
 
 
-def to_markdown(rows: list[dict], width: int, rc: float, occlusion_free: bool = False) -> str:
+#: the compact table: (header, row key, digits) — the thesis' Table 5.2 columns over every room
+COMPACT = (("rooms", "rooms", None), ("failed", "failed", None), ("CE (m) ↓", "ce_all", 4), ("CEN (%) ↓", "cen_all", 3),
+           ("3D IoU (%) ↑", "iou_3d_all", 2), ("2D IoU (%) ↑", "iou_2d_all", 2), ("ms/layout", "ms_per_layout", 1))
+
+
+def _cell(v, digits: int | None) -> str:
+    if digits is None:
+        return str(v)
+    return "–" if not math.isfinite(v) else f"{v:.{digits}f}"
+
+
+def to_markdown(rows: list[dict], width: int, rc: float, occlusion_free: bool = False, all_columns: bool = True) -> str:
+    """The acceptance table: every column with ``all_columns`` (21), else the compact :data:`COMPACT` ones."""
     which = ("the first rooms without occlusion (the thesis' Table 5.2 protocol)" if occlusion_free else
              "consecutive rooms, occluded ones included")
+    if not all_columns:
+        head = [f"Noise-free synthetic rooms ({which}), {width}x{width // 2}, Rc = {rc} m; means over every room "
+                "(--all: the occlusion breakdown).", "",
+                "| world | boundaries | " + " | ".join(h for h, _, _ in COMPACT) + " |",
+                "|" + "---|" * (2 + len(COMPACT))]
+        body = [f"| {r['world']} | {r['boundaries']} | " + " | ".join(_cell(r[k], d) for _, k, d in COMPACT) + " |"
+                for r in rows]
+        return "\n".join(head + body) + "\n"
     head = (f"Noise-free synthetic rooms ({which}), {width}x{width // 2}, Rc = {rc} m. *all*: every room of the "
             "table; then the occlusion-free rooms, the occluded ones, and among those the rooms with at most "
             "one / two or more consecutive walls that no column sees (*hidden 1* / *hidden >= 2*). CE in metres, "
@@ -177,17 +201,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--protocol", choices=("both", "all", "thesis"), default="both",
                     help="'all': n consecutive rooms, occlusions included; 'thesis': the first n occlusion-free "
                          "rooms (Table 5.2 leaves occluded rooms out); 'both' (default): both tables")
-    ap.add_argument("--out", default=None, help="write the markdown table here (atomically)")
+    ap.add_argument("--out", default=None, help="write the markdown tables here (atomically; every column)")
+    ap.add_argument("--all", action="store_true", help="print every column (the occlusion breakdown: 21 columns)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     a = ap.parse_args(argv)
-    tables = []
+    for flag, value, low in (("--n", a.n, 1), ("--width", a.width, 16)):
+        if value < low:
+            ap.error(f"{flag} must be >= {low}, got {value}")
+    if not (math.isfinite(a.rc) and a.rc >= 0):
+        ap.error(f"--rc is the rig radius in metres, >= 0; got {a.rc}")
+    studies = []
     for occlusion_free in {"all": (False,), "thesis": (True,), "both": (True, False)}[a.protocol]:
-        rows = run_study(a.n, a.width, a.rc, a.seed, occlusion_free=occlusion_free)
-        tables.append(to_markdown(rows, a.width, a.rc, occlusion_free))
-    md = "\n".join(tables)
-    print(md)
+        rows = run_study(a.n, a.width, a.rc, a.seed, occlusion_free=occlusion_free, progress=not a.no_progress)
+        studies.append((rows, occlusion_free))
+    print("\n".join(to_markdown(rows, a.width, a.rc, free, all_columns=a.all) for rows, free in studies))
     if a.out:
         from omnidl.utils.io import atomic_write_text
-        atomic_write_text(a.out, md)
+        atomic_write_text(a.out, "\n".join(to_markdown(rows, a.width, a.rc, free) for rows, free in studies))
     return 0
 
 

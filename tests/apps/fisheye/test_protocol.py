@@ -41,6 +41,14 @@ def test_protocol_end_to_end(tmp_path):
         assert len(radial) == 4 and "mre_std" in radial[0]
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert set(summary["comparison"]) == {"F165", "F195"}
+    # one unit everywhere: segmentation scores are fractions in results.csv, summary.json rows and comparison
+    assert all(0 <= float(r["miou"]) <= 1 and 0 <= float(r["macc"]) <= 1 for r in rows)
+    assert [r["miou"] for r in summary["rows"]] == [float(r["miou"]) for r in rows]
+    for per in summary["comparison"].values():
+        for key in ("miou_all", "macc_all"):
+            if key in per["metrics"]:
+                assert 0 <= per["metrics"][key]["std"] <= 1
+    assert "fractions" in summary["units"] and "mIoU (%)" in md
     # a re-run loads the stage checkpoints instead of training again
     ck = tmp_path / "checkpoints" / "pers_bl.pt"
     mtime = ck.stat().st_mtime

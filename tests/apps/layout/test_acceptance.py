@@ -32,3 +32,18 @@ def test_thesis_protocol_keeps_only_occlusion_free_rooms():
     assert all(r["rooms"] == 3 and r["occluded"] == 0 and r["failed"] == 0 for r in rows)
     md = to_markdown(rows, 256, 1.0, occlusion_free=True)
     assert "Table 5.2 protocol" in md and "| – |" in md            # no occluded rooms: empty columns
+
+
+def test_cli_prints_compact_thesis_columns_and_all_on_request(capsys):
+    """Issue 18: the terminal tables had 21 columns; by default the thesis' columns, --all for everything."""
+    from omnidl.apps.layout.acceptance import main
+    args = ["--n", "1", "--width", "128", "--protocol", "all", "--no-progress"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    table = [line for line in out.splitlines() if line.startswith("|")]
+    assert table[0].count("|") - 1 == 9                              # world, boundaries + 7 compact columns
+    assert "CE (m) ↓" in table[0] and "3D IoU (%) ↑" in table[0] and "CEN (%) ↓" in table[0]
+    assert len(table) == 2 + 4
+    assert main(args + ["--all"]) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")]
+    assert table[0].count("|") - 1 == 21
