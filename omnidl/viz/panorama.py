@@ -42,3 +42,28 @@ class PanoramaVisualizer:
     def __call__(self, outputs: dict[str, Any], batch: dict[str, Any]) -> torch.Tensor:
         n = min(self.max_images, batch["image"].shape[0])
         return make_grid([sample_panels(outputs, batch, i, self.depth_max, self.alpha) for i in range(n)])
+
+
+class FigureVisualizer:
+    """``viz(outputs, batch) -> (3, h, w)``: the full-resolution titled figure of
+    :func:`omnidl.viz.figure.prediction_figure` (input | depth | GT depth | semantics | GT semantics, depth
+    colour bar in metres, class legend) for each of the first ``max_images`` samples, stacked vertically.
+
+    A drop-in for :class:`PanoramaVisualizer` in a ``viz:`` config (``_target_: omnidl.viz.FigureVisualizer``).
+    """
+
+    def __init__(self, max_images: int = 1, depth_max: float | None = None, alpha: float = 0.6):
+        self.max_images, self.depth_max, self.alpha = max_images, depth_max, alpha
+
+    def __call__(self, outputs: dict[str, Any], batch: dict[str, Any]) -> torch.Tensor:
+        from .figure import prediction_figure
+
+        def pick(d: dict, key: str, i: int):
+            v = d.get(key)
+            return v[i] if isinstance(v, torch.Tensor) else None
+        n = min(self.max_images, batch["image"].shape[0])
+        figs = [prediction_figure(batch["image"][i], pick(outputs, "depth", i), pick(outputs, "semantic", i),
+                                  pick(batch, "depth", i), pick(batch, "semantic", i), depth_max=self.depth_max,
+                                  alpha=self.alpha) for i in range(n)]
+        w = max(f.shape[-1] for f in figs)
+        return torch.cat([torch.nn.functional.pad(f, (0, w - f.shape[-1]), value=1.0) for f in figs], dim=1)

@@ -1,0 +1,121 @@
+"""A model ready for prediction from a checkpoint: the network, its input size and its camera.
+
+Accepted files:
+
+* checkpoints of :mod:`omnidl.engine` (``train.py``: ``best.pt``/``last.pt``): ``model`` weights and the
+  resolved ``config``; the model is ``config.model``, the input size ``config.data.height/width`` and the
+  camera ``config.camera``;
+* FreDSNet weights converted by ``python -m omnidl.apps.convert_fredsnet`` (``model_kwargs`` +
+  ``state_dict``): 512x256 equirectangular input as the official model;
+* an official HorizonNet ``.pth`` (``kwargs`` + ``state_dict``, e.g. ``resnet50_rnn__st3d.pth``): 1024x512.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+@dataclass
+class Predictor:
+    """Attributes: ``model`` (eval mode), ``name`` (registry name), ``height``/``width`` (network input),
+    ``camera`` (camera spec for :func:`omnidl.cameras.resolve_camera`, or None = full equirect),
+    ``source`` (what the checkpoint was), ``device``."""
+
+    model: torch.nn.Module
+    name: str
+    height: int
+    width: int
+    camera: Any = None
+    source: str = ""
+    device: str = "cpu"
+    info: dict = field(default_factory=dict)
+
+    def camera_for(self, width: int, height: int):
+        """The checkpoint's camera resized to ``width x height`` (full equirect when none is configured)."""
+        from omnidl.cameras import Equirectangular, resolve_camera
+        if self.camera is None:
+            return Equirectangular(width=width, height=height)
+        return resolve_camera(self.camera, width, height)
+
+    @property
+    def outputs(self) -> set[str]:
+        """Output names of the model: ``depth``/``semantic`` (FreDSNet, U-Net), ``boundary``/``corner``
+        (HorizonNet), ``horizon``/``vp`` (HoLiNet)."""
+        return set(self.info.get("outputs", ()))
+
+    @torch.no_grad()
+    def __call__(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``image (3, H, W)`` in [0, 1] at any size -> the model outputs at the network size (batch of 1)."""
+        import torch.nn.functional as F
+        x = image[None].float()
+        if x.shape[-2:] != (self.height, self.width):
+            x = F.interpolate(x, size=(self.height, self.width), mode="bilinear", align_corners=False, antialias=True)
+        p = next(self.model.parameters())
+        out = self.model(x.to(p.device, p.dtype))
+        return {k: v.detach().float().cpu() for k, v in out.items() if isinstance(v, torch.Tensor)}
+
+
+def _probe_outputs(model: torch.nn.Module, h: int, w: int) -> tuple[str, ...]:
+    with torch.no_grad():
+        p = next(model.parameters())
+        out = model(torch.zeros(1, 3, h, w, device=p.device, dtype=p.dtype))
+    return tuple(sorted(out))
+
+
+def load_predictor(path: str | Path, device: str = "cpu") -> Predictor:
+    """Load a checkpoint (see the module docstring) into a :class:`Predictor`; errors name the file and what
+    it lacks."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--checkpoint {path}: no such file (give best.pt/last.pt of a train.py run, "
+                                "converted FreDSNet weights or an official HorizonNet .pth)")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:
+        raise RuntimeError(f"--checkpoint {path}: not a readable torch file ({e})") from e
+    if not isinstance(raw, dict) or not ({"model_kwargs", "kwargs", "config"} & set(raw)):
+        raise ValueError(f"--checkpoint {path}: no 'config' with a 'model' entry; it must be a checkpoint of "
+                         "`python train.py model=...` (or converted/official weights, see `omnidl predict -h`)")
+    from omnidl.models import create_model
+    if "model_kwargs" in raw and "state_dict" in raw:                                     # convert_fredsnet
+        model = create_model("fredsnet", **raw["model_kwargs"])
+        model.load_state_dict(raw["state_dict"])
+        name, h, w, cam, source = "fredsnet", 256, 512, None, "FreDSNet official weights (converted)"
+    elif "kwargs" in raw and "state_dict" in raw:                                         # official HorizonNet
+        sd = raw["state_dict"]
+        hidden = int(sd["bi_rnn.weight_hh_l0"].shape[1]) if "bi_rnn.weight_hh_l0" in sd else 512
+        model = create_model("horizonnet", backbone=raw["kwargs"].get("backbone", "resnet50"), hidden=hidden,
+                             rnn=bool(raw["kwargs"].get("use_rnn", True)), official_checkpoint=str(path))
+        name, h, w, cam, source = "horizonnet", 512, 1024, None, "HorizonNet official weights"
+    else:
+        from omnidl.engine.checkpoint import load_model_weights
+        ckpt = raw
+        cfg = ckpt.get("config")
+        if not cfg or "model" not in cfg:
+            raise ValueError(f"--checkpoint {path}: no 'config' with a 'model' entry; it must be a checkpoint of "
+                             "`python train.py model=...` (or converted/official weights, see `omnidl predict -h`)")
+        from omegaconf import OmegaConf
+        conf = OmegaConf.create(cfg)
+        mcfg = OmegaConf.to_container(conf.model, resolve=True)
+        mcfg.pop("_target_", None)
+        name = mcfg.pop("name", None)
+        if name is None:
+            raise ValueError(f"--checkpoint {path}: config.model has no 'name' (a registered model name)")
+        for k in ("pretrained", "official_checkpoint"):   # weights come from the checkpoint itself
+            if k in mcfg:
+                mcfg[k] = None
+        model = create_model(name, **mcfg)
+        load_model_weights(model, ckpt, path)
+        h = OmegaConf.select(conf, "data.height", default=None) or OmegaConf.select(conf, "camera.height", default=None)
+        w = OmegaConf.select(conf, "data.width", default=None) or OmegaConf.select(conf, "camera.width", default=None)
+        if h is None or w is None:
+            raise ValueError(f"--checkpoint {path}: config has neither data.height/width nor camera.height/width; "
+                             "cannot tell the network's input size")
+        h, w = int(h), int(w)
+        cam = OmegaConf.to_container(conf.camera, resolve=True) if OmegaConf.select(conf, "camera") else None
+        source = f"train.py checkpoint (step {ckpt.get('step', '?')})"
+    model = model.to(device).eval()
+    return Predictor(model, name, h, w, cam, source, device, {"outputs": _probe_outputs(model, h, w)})

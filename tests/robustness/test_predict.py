@@ -1,0 +1,150 @@
+"""Bad inputs of ``omnidl predict`` and its parts (inputs, checkpoints, upright, viz writers): each row's verdict."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from omnidl.apps.predict.inputs import iter_inputs
+from omnidl.apps.predict.loader import load_predictor
+from omnidl.apps.predict.run import predict_upright
+from omnidl.geometry.upright import estimate_upright
+from omnidl.viz import depth_to_points, read_depth_png16, write_depth_png16, write_semantic_png
+
+from .verdicts import ERROR, OK, SKIP, expect, row
+
+
+def _png(path, arr):
+    import cv2
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), arr)
+    return path
+
+
+def _input_case(kind, tmp):
+    if kind == "missing":
+        return tmp / "nope.png"
+    if kind == "bad_extension":
+        (tmp / "notes.txt").write_text("x")
+        return tmp / "notes.txt"
+    if kind == "empty_folder":
+        (tmp / "empty").mkdir()
+        return tmp / "empty"
+    if kind == "corrupt_single":
+        (tmp / "broken.png").write_bytes(b"\x89PNG not really")
+        return tmp / "broken.png"
+    if kind == "corrupt_in_folder":
+        _png(tmp / "f" / "a.png", np.zeros((8, 16, 3), np.uint8))
+        (tmp / "f" / "b.png").write_bytes(b"junk")
+        return tmp / "f"
+    if kind == "garbage_video":
+        (tmp / "clip.mp4").write_bytes(b"not a video")
+        return tmp / "clip.mp4"
+    if kind == "gray16":
+        return _png(tmp / "g.png", np.full((8, 16), 65535, np.uint16))
+    if kind == "rgba":
+        return _png(tmp / "rgba.png", np.full((8, 16, 4), 255, np.uint8))
+    raise AssertionError(kind)
+
+
+INPUTS = [
+    row("missing input", "missing", verdict=ERROR, match=r"nope\.png: no such file"),
+    row("unknown extension", "bad_extension", verdict=ERROR, match=r"notes\.txt: unknown extension '\.txt'"),
+    row("empty folder", "empty_folder", verdict=ERROR, match=r"empty holds no images"),
+    row("corrupt single image", "corrupt_single", verdict=ERROR, match=r"broken\.png: not a readable image"),
+    row("corrupt image in a folder", "corrupt_in_folder", verdict=SKIP, match=r"b\.png: not a readable image; skipped"),
+    row("video OpenCV cannot read", "garbage_video", verdict=ERROR, match=r"clip\.mp4: (OpenCV cannot open|the video has no)"),
+    row("16-bit grey image", "gray16", verdict=OK),
+    row("RGBA image", "rgba", verdict=OK),
+]
+
+
+@pytest.mark.parametrize("kind,verdict,match", INPUTS)
+def test_inputs(kind, verdict, match, tmp_path):
+    path = _input_case(kind, tmp_path)
+    out = expect(lambda: list(iter_inputs(path)), verdict, match)
+    if kind == "corrupt_in_folder":
+        assert [n for n, im in out] == ["a", "b"] and out[1][1] is None
+    elif verdict == OK:
+        (name, img), = out
+        assert img.shape == (3, 8, 16) and torch.allclose(img, torch.ones_like(img))
+
+
+def _ckpt_case(kind, tmp):
+    p = tmp / "ck.pt"
+    if kind == "missing":
+        return tmp / "missing.pt"
+    if kind == "not_torch":
+        p.write_bytes(b"hello")
+    elif kind == "bare_state_dict":
+        torch.save({"model": {"w": torch.zeros(1)}}, p)
+    elif kind == "no_model_name":
+        torch.save({"model": {}, "config": {"model": {"backbone": "resnet18"}}}, p)
+    elif kind == "no_size":
+        from omnidl.models import create_model
+        m = create_model("unet", base_channels=4, levels=2)
+        torch.save({"model": m.state_dict(), "config": {"model": {"name": "unet", "base_channels": 4, "levels": 2}}}, p)
+    return p
+
+
+CHECKPOINTS = [
+    row("checkpoint missing", "missing", verdict=ERROR, match=r"missing\.pt: no such file"),
+    row("not a torch file", "not_torch", verdict=ERROR, match=r"ck\.pt: not a readable torch file"),
+    row("bare state dict", "bare_state_dict", verdict=ERROR, match=r"ck\.pt: no 'config' with a 'model' entry"),
+    row("config.model without name", "no_model_name", verdict=ERROR, match=r"ck\.pt: config\.model has no 'name'"),
+    row("config without input size", "no_size", verdict=ERROR, match=r"ck\.pt: config has neither data\.height/width"),
+]
+
+
+@pytest.mark.parametrize("kind,verdict,match", CHECKPOINTS)
+def test_checkpoints(kind, verdict, match, tmp_path):
+    expect(lambda: load_predictor(_ckpt_case(kind, tmp_path)), verdict, match)
+
+
+def _nan_pano():
+    x = torch.zeros(3, 64, 128)
+    x[1, 3, 4] = float("nan")
+    return x
+
+
+UPRIGHT = [
+    row("not 2:1", lambda: estimate_upright(torch.zeros(3, 64, 100)), verdict=ERROR, match=r"W = 2H.*100x64"),
+    row("four channels", lambda: estimate_upright(torch.zeros(4, 64, 128)), verdict=ERROR, match=r"\(3, H, W\).*\(4, 64, 128\)"),
+    row("NaN pixel", lambda: estimate_upright(_nan_pano()), verdict=ERROR, match="non-finite"),
+    row("featureless panorama", lambda: estimate_upright(torch.full((3, 128, 256), 0.3)), verdict=OK),
+]
+
+
+@pytest.mark.parametrize("fn,verdict,match", UPRIGHT)
+def test_upright(fn, verdict, match):
+    est = expect(fn, verdict, match)
+    if verdict == OK:
+        assert not est.ok and "line segments" in est.reason
+
+
+def test_predict_upright_rows(tmp_path):
+    expect(lambda: predict_upright("x", torch.zeros(3, 64, 100), tmp_path), ERROR, r"predict upright x: .*100x64")
+    files = expect(lambda: predict_upright("flat", torch.full((3, 64, 128), 0.5), tmp_path), OK, None)
+    assert all(f.exists() for f in files)                      # written, with the reason in the JSON
+    assert "line segments" in (tmp_path / "flat_upright.json").read_text()
+
+
+VIZ = [
+    row("semantic id 300", lambda p: write_semantic_png(p / "s.png", torch.full((2, 2), 300)), verdict=ERROR,
+        match=r"class ids must be in \[0, 255\], got \[300, 300\]"),
+    row("depth PNG without its scale", lambda p: read_depth_png16(
+        (write_depth_png16(p / "d.png", torch.ones(2, 2))[0].with_suffix(".json").unlink(), p / "d.png")[1]),
+        verdict=ERROR, match=r"d\.png: its scale file d\.json is missing"),
+    row("non-positive scale", lambda p: write_depth_png16(p / "d.png", torch.ones(2, 2), scale=0.0), verdict=ERROR,
+        match=r"scale must be > 0 metres per unit, got 0\.0"),
+    row("unknown PLY frame", lambda p: depth_to_points(torch.ones(1, 4, 8), None, frame="z_up"), verdict=ERROR,
+        match=r"frame must be one of \['camera', 'gravity_y_up'\], got 'z_up'"),
+    row("all-invalid depth", lambda p: write_depth_png16(p / "z.png", torch.full((2, 2), float("nan"))), verdict=OK),
+]
+
+
+@pytest.mark.parametrize("fn,verdict,match", VIZ)
+def test_viz_writers(fn, verdict, match, tmp_path):
+    out = expect(lambda: fn(tmp_path), verdict, match)
+    if verdict == OK:
+        assert read_depth_png16(out[0]).max() == 0
