@@ -32,6 +32,7 @@ import torchvision
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks._timing import load_line  # noqa: E402
 from omnidl.cameras import Equirectangular  # noqa: E402
 from omnidl.models.fredsnet import FreDSNet, count_parameters  # noqa: E402
 
@@ -83,6 +84,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     print(f"torch {torch.__version__}, {a.threads} threads, load average {os.getloadavg()}", flush=True)
+    print(load_line(a.threads, "at start"), flush=True)
 
     cam = Equirectangular(width=512, height=256)
     variants: list[tuple[str, dict]] = [("std", {})]
@@ -144,6 +146,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(line)
     res["std_fwd_target_met"] = res["std_fwd_512x256"] <= 0.8
     res["load_after"] = os.getloadavg()
+    print(load_line(a.threads, "at end"))
     print(f"Std forward target (<= 0.8 s): {'met' if res['std_fwd_target_met'] else 'NOT met'} "
           f"(load average {res['load_after']}; absolute times need an idle machine)")
     if a.json:

@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks._timing import load_line  # noqa: E402
 from omnidl.postprocess.layout import estimate_layout  # noqa: E402
 from omnidl.postprocess.layout import ransac as ransac_mod  # noqa: E402
 from omnidl.apps.layout.simulate import Room, ring_camera, simulate_columns  # noqa: E402
@@ -76,6 +77,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(a.threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(a.threads))
     print(f"load average before: {os.getloadavg()}")
+    print(load_line(1, "before (the pipeline runs single-threaded)"))
     ref = {"manhattan": (0.59, 1.29), "atlanta": (0.80, 3.17)}
     target = {"manhattan": 0.020, "atlanta": 0.050}
     out = {}
@@ -93,6 +95,7 @@ def main(argv=None) -> int:
               f"x{ref[world][0] / t:.0f}-x{ref[world][1] / t:.0f};  target <= {1000 * target[world]:.0f} ms: "
               f"{'met' if t <= target[world] else 'NOT met'}")
     print(f"load average after: {os.getloadavg()}")
+    print(load_line(1, "after"))
     if a.json:
         from omnidl.utils.io import atomic_write_json
         atomic_write_json(a.json, out)

@@ -114,6 +114,10 @@ class FusionHead(nn.Module):
 
     def forward(self, maps: Sequence[Tensor]) -> Tensor:
         B, _, H, W = maps[-1].shape
+        if torch.compiler.is_compiling():           # torch.export / torch.compile: the row blocks slice by a
+            ups = [F.interpolate(med(d), size=(H, W), mode="bilinear", align_corners=True)   # data-dependent
+                   for med, d in zip(self.mediators, maps)]                                   # range: plain sum
+            return self.out(ups[0] + sum(w * u for w, u in zip(self.branch_weights.unbind(), ups[1:])))
         blocked = can_block(self.out.conv)          # not for a distortion-aware output conv
         mediated = [med.row_source(d) if blocked and not self.training and d.shape[-2:] == (H, W) else med(d)
                     for med, d in zip(self.mediators, maps)]

@@ -81,10 +81,13 @@ class HoLiNet(nn.Module):
         conv: ``"projected"`` (ProjectedConv2d everywhere) or ``"standard"``; ``"equi"``/``"std"`` are
             deprecated aliases (:mod:`omnidl.nn.conv_switch`).
         camera: camera of the input image for ``conv="projected"`` (``Camera`` or config; default full equirect).
+        channels_last: run in ``torch.channels_last`` memory format (weights and activations; outputs are
+            returned contiguous). On CPU the ProjectedConv2d fast backend then writes its outputs in place
+            and oneDNN skips layout conversions (no copies per layer); results equal up to float rounding.
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, width: float = 1.0,
-                 conv: str = "projected", camera: Any = None) -> None:
+                 conv: str = "projected", camera: Any = None, channels_last: bool = True) -> None:
         super().__init__()
         conv = self.conv = conv_choice(conv, "HoLiNet")
         if width <= 0:
@@ -106,6 +109,9 @@ class HoLiNet(nn.Module):
             from omnidl.nn import convert_conv2d
             convert_conv2d(self, camera=resolve_camera(camera, default=Equirectangular(width=256, height=128),
                                                        allow_files=False))
+        self.channels_last = bool(channels_last)
+        if self.channels_last:
+            self.to(memory_format=torch.channels_last)
 
     def forward(self, image: Tensor) -> dict[str, Tensor]:
         """``image (B, 3, H, W)`` RGB in ``[0, 1]`` -> dict of logits (see the module docstring)."""
@@ -113,6 +119,8 @@ class HoLiNet(nn.Module):
             raise ValueError(f"HoLiNet expects (B, 3, H, W) RGB images, got shape {tuple(image.shape)}")
         if image.shape[-1] % 32 or image.shape[-2] % 32:
             raise ValueError(f"HoLiNet: input sides must be multiples of 32, got {tuple(image.shape[-2:])}")
+        if self.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
         f0, f1, f2, f3, f4 = self.encoder(image)
         x = _up(self.dec32(f4))
         x16 = self.dec16(torch.cat([x, f3], 1))
@@ -123,6 +131,7 @@ class HoLiNet(nn.Module):
         a4 = self.out4(x4)
         x2 = self.dec2(torch.cat([_up(x4), f0, _up(a4)], 1))
         out = self.out2(x2)
+        out, a16, a8, a4 = (t.contiguous() for t in (out, a16, a8, a4))
         return {"horizon": out[:, :1], "vp": out[:, 1:], "aux_16": a16, "aux_8": a8, "aux_4": a4}
 
 

@@ -222,7 +222,11 @@ def load_official_checkpoint(model: HorizonNet, path: str | os.PathLike) -> None
     if not os.path.isfile(path):
         raise FileNotFoundError(f"HorizonNet checkpoint {path!r} not found (download the official weights "
                                 "yourself and point model.checkpoint_official=... to them)")
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    try:  # weights_only: a .pth from the internet must not be able to run code when loaded
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 (truncated, not a torch file, or pickled objects)
+        raise ValueError(f"{path}: could not read the HorizonNet checkpoint with torch.load(weights_only=True): "
+                         f"{str(e).splitlines()[0]}") from e
     conv = convert_official_state_dict(state)
     own = model.state_dict()
     missing = [k for k in own if k not in conv]

@@ -116,6 +116,8 @@ class ProjectedConv2d(nn.Conv2d):
             about ``sampling.CHUNK_BYTES`` of columns per chunk).
 
     Input ``(B, C, H, W)``; output ``(B, Cout, Ho, Wo)`` (channels-last strides on the fast path).
+    Under autocast, or with float16/bfloat16 tensors, the fast backend computes in float32 and returns the
+    autocast dtype (or the input's): its sparse transposes have no half-precision kernels.
     """
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size, stride=1, padding=0, dilation=1,
@@ -192,6 +194,16 @@ class ProjectedConv2d(nn.Conv2d):
             raise ValueError(f"ProjectedConv2d expects (B, {self.in_channels}, H, W) input, got {tuple(x.shape)}")
         key = self.geometry_key(tuple(x.shape[-2:]))
         if self.resolved_backend() == "fast":
+            dev = x.device.type
+            autocast = torch.is_autocast_enabled(dev) if dev in ("cpu", "cuda") else False
+            if autocast or x.dtype not in (torch.float32, torch.float64) or weight.dtype != x.dtype:
+                # mixed/low precision: the sampling plan's sparse transposes have no half/bfloat16 kernels
+                # (MKL), so the fast backend computes in float32 and returns the autocast (or input) dtype
+                out_dtype = torch.get_autocast_dtype(dev) if autocast else x.dtype
+                with torch.autocast(dev, enabled=False):
+                    y = fixed_offset_conv2d(x.float(), weight.float(), None if bias is None else bias.float(),
+                                            get_plan(key, x.device, torch.float32), positions=self.chunk_positions)
+                return y.to(out_dtype)
             plan = get_plan(key, x.device, x.dtype)
             return fixed_offset_conv2d(x, weight, bias, plan, positions=self.chunk_positions)
         off, mask = get_offsets(key, x.device, x.dtype)

@@ -254,7 +254,7 @@ class _FixedOffsetConv(torch.autograd.Function):
                         torch.addmm(bias, cols, wm, out=out[b, s:e])
                     else:
                         torch.mm(cols, wm, out=out[b, s:e])
-        else:  # NCHW output (B, Cout, P): each chunk computed transposed, then copied while in cache
+        else:  # NCHW output (B, Cout, P): each chunk computed transposed, straight into its strided slice
             result = torch.empty(B, Cout, Ho, Wo, dtype=x.dtype, device=x.device)
             out = result.view(B, Cout, P)
             bcol = None if bias is None else bias.unsqueeze(1)
@@ -262,7 +262,10 @@ class _FixedOffsetConv(torch.autograd.Function):
             def work(part: list) -> None:
                 for b, s, e in part:
                     cols = _gather(plan, xr[b], s, e)
-                    out[b, :, s:e] = torch.mm(wmt, cols.t()) if bcol is None else torch.addmm(bcol, wmt, cols.t())
+                    if bcol is None:  # written in place: the (Cout, P_c) slice is a BLAS matrix with ld = P
+                        torch.mm(wmt, cols.t(), out=out[b, :, s:e])
+                    else:
+                        torch.addmm(bcol, wmt, cols.t(), out=out[b, :, s:e])
         _run_split(tasks, work, x.device)
         ctx.plan = plan
         ctx.positions = positions
@@ -379,3 +382,43 @@ def deform_conv2d_reference(x: Tensor, weight: Tensor, bias: Tensor | None, offs
         m = F.pad(m, (0, wo_big - Wo))
     y = deform_conv2d(xp, off, weight, bias, stride=stride, padding=(padding[0], 0), dilation=dilation, mask=m)
     return y[..., :Wo]
+
+
+def circular_offsets(offsets: Tensor, in_hw: Pair, kernel_size: Pair, stride: Pair, padding: Pair,
+                     dilation: Pair) -> tuple[Tensor, int]:
+    """Offsets ``(1, 2K, Ho, Wo)`` rewritten for :func:`deform_conv2d_circular`: every sample column taken
+    modulo ``W`` (a representative in ``[0, W)``) on an input circularly padded by ``P = max(1, padding[1])``
+    columns per side. Returns ``(offsets', P)``; compute once per geometry."""
+    kh, kw = kernel_size
+    W = in_hw[1]
+    P = max(1, padding[1])
+    Ho, Wo = offsets.shape[-2:]
+    off = offsets.clone()
+    ox = (torch.arange(Wo, dtype=off.dtype, device=off.device) * stride[1]).view(1, 1, 1, Wo)
+    tj = (torch.arange(kw, dtype=off.dtype, device=off.device) * dilation[1]).repeat(kh).view(1, -1, 1, 1)
+    x = ox - padding[1] + tj + off[:, 1::2]  # absolute sample columns
+    off[:, 1::2] = torch.remainder(x, W) + P - ox - tj
+    return off, P
+
+
+def deform_conv2d_circular(x: Tensor, weight: Tensor, bias: Tensor | None, offsets_wrapped: Tensor,
+                           mask: Tensor | None, P: int, stride: Pair, padding: Pair, dilation: Pair) -> Tensor:
+    """Wrap-correct ``torchvision.ops.deform_conv2d`` with the output size of the plain call: the input is
+    circularly pre-padded by ``P`` columns (not tiled 3x) and the offsets come from :func:`circular_offsets`.
+    The honest baseline of the fast backend (same result as :func:`deform_conv2d_reference` with ``wrap``)."""
+    from torchvision.ops import deform_conv2d
+
+    B = x.shape[0]
+    Ho, Wo = offsets_wrapped.shape[-2:]
+    xp = F.pad(x, (P, P, 0, 0), mode="circular")
+    kw = weight.shape[-1]
+    wo_big = (x.shape[-1] + 2 * P - dilation[1] * (kw - 1) - 1) // stride[1] + 1
+    off = offsets_wrapped.to(x.dtype)
+    m = None if mask is None else mask.to(x.dtype)
+    if wo_big != Wo:  # padding[1] == 0: one extra column each side, cropped below
+        off = F.pad(off, (0, wo_big - Wo))
+        m = None if m is None else F.pad(m, (0, wo_big - Wo))
+    off = off.expand(B, -1, -1, -1)
+    m = None if m is None else m.expand(B, -1, -1, -1)
+    y = deform_conv2d(xp, off, weight, bias, stride=stride, padding=(padding[0], 0), dilation=dilation, mask=m)
+    return y[..., :Wo] if wo_big != Wo else y

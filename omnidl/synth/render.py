@@ -10,6 +10,7 @@ from torch import Tensor
 
 from omnidl.classes import CLASS_ID
 from omnidl.geometry.rotations import upright_rotation
+from omnidl.nn.threads import limit_threads
 
 from . import materials as M
 from .layout import layout_ground_truth
@@ -78,14 +79,22 @@ def _surface_tables(scene: Scene, dtype, device):
 
 
 def render(scene: Scene, camera, pose: np.ndarray, layout: bool = True, dtype: torch.dtype = torch.float32,
-           device=None, shadows: bool = False) -> dict:
+           device=None, shadows: bool = False, threads: int | str | None = "auto") -> dict:
     """Ray-cast ``scene`` for ``camera`` at ``pose`` (``(4, 4)`` camera-to-world).
 
     Returns the sample dict of ``docs/synth.md`` (``image``, ``depth``, ``semantic``, ``instance``,
     ``normal``, ``valid`` and, with ``layout=True``, the layout ground truth). ``meta`` holds
     ``camera``, ``manhattan``, ``num_walls``, ``rig_radius`` and the scene seed. ``shadows`` adds
-    box shadows from the point lights (slower).
+    box shadows from the point lights (slower). ``threads``: intra-op threads of the render (many small
+    ops): ``"auto"`` = the process setting while every thread has a free CPU, 1 when the CPUs are
+    oversubscribed (:func:`omnidl.nn.threads.auto_threads`; multi-threaded small ops collapse there);
+    an int caps it; ``None`` leaves it. The result does not depend on it.
     """
+    with limit_threads(threads):
+        return _render(scene, camera, pose, layout, dtype, device, shadows)
+
+
+def _render(scene: Scene, camera, pose: np.ndarray, layout: bool, dtype: torch.dtype, device, shadows: bool) -> dict:
     pose = np.asarray(pose, np.float64)
     W, H = camera.width, camera.height
     o, d, valid = world_rays(camera, pose, dtype, device)

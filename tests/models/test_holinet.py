@@ -26,3 +26,21 @@ def test_bad_inputs_and_options():
         m(torch.rand(1, 3, 40, 80))
     with pytest.raises(ValueError, match="conv"):
         create_model("holinet", conv="deform")
+
+
+@pytest.mark.parametrize("conv", ["standard", "projected"])
+def test_channels_last_matches_contiguous(conv):
+    """The channels-last fast path (default) gives the contiguous path's outputs and gradients."""
+    torch.manual_seed(0)
+    fast = create_model("holinet", backbone="resnet18", width=0.125, conv=conv).eval()
+    slow = create_model("holinet", backbone="resnet18", width=0.125, conv=conv, channels_last=False).eval()
+    slow.load_state_dict(fast.state_dict())
+    x = torch.rand(1, 3, 32, 64)
+    xf, xs = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    of, os_ = fast(xf), slow(xs)
+    for k in of:
+        assert of[k].is_contiguous()
+        torch.testing.assert_close(of[k], os_[k], rtol=1e-5, atol=1e-5)
+    sum(v.sum() for v in of.values()).backward()
+    sum(v.sum() for v in os_.values()).backward()
+    torch.testing.assert_close(xf.grad, xs.grad, rtol=1e-5, atol=1e-5)

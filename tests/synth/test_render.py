@@ -273,3 +273,33 @@ def test_shadows_only_darken():
     lit, shadowed = render(sc, cam, pose, layout=False), render(sc, cam, pose, layout=False, shadows=True)
     assert torch.equal(lit["depth"], shadowed["depth"]) and torch.equal(lit["semantic"], shadowed["semantic"])
     assert (shadowed["image"] <= lit["image"] + 1e-6).all() and (shadowed["image"] < lit["image"] - 1e-3).any()
+
+
+def test_render_is_independent_of_the_thread_policy(monkeypatch):
+    """render(threads=...) only changes how many intra-op threads run, never the result (bitwise)."""
+    from omnidl.nn import threads as T
+    cam = build({"type": "equirect", "width": 64, "height": 32})
+    sc = sample_room(3)
+    pose = place_camera(sc, cam, 3)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        ref = render(sc, cam, pose, threads=None)
+        seen = []
+        monkeypatch.setattr(T, "runnable_tasks", lambda: 10 ** 6)  # oversubscribed: auto -> 1 thread
+        orig = T.limit_threads
+
+        def spy(n):
+            seen.append(T.auto_threads() if n == "auto" else n)
+            return orig(n)
+        import sys
+        monkeypatch.setattr(sys.modules["omnidl.synth.render"], "limit_threads", spy)
+        for threads in ("auto", 1, 2):
+            out = render(sc, cam, pose, threads=threads)
+            for k, v in ref.items():
+                if isinstance(v, torch.Tensor):
+                    assert torch.equal(out[k], v), k
+        assert seen == [1, 1, 2]
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -51,11 +51,21 @@ def _subdivided(level: int) -> tuple[Tensor, Tensor]:
     return vt, torch.tensor(faces, dtype=torch.int64)
 
 
+_CONVERTED: dict[tuple, Tensor] = {}
+
+
 def icosahedron_vertices(level: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
-    """``(10 * 4**level + 2, 3)`` unit vertices of the icosahedron subdivided ``level`` times."""
+    """``(10 * 4**level + 2, 3)`` unit vertices of the icosahedron subdivided ``level`` times.
+
+    The tensor is cached per (level, dtype, device) and shared by every caller (the solvers ask for it on
+    every call): do not modify it in place (``.clone()`` first)."""
     if level < 0 or level > 8:
         raise ValueError(f"icosahedron subdivision level must be in [0, 8], got {level}")
-    return _subdivided(int(level))[0].to(dtype=dtype, device=device)
+    key = (int(level), dtype, str(torch.device(device)) if device is not None else "cpu")
+    hit = _CONVERTED.get(key)
+    if hit is None:
+        hit = _CONVERTED.setdefault(key, _subdivided(int(level))[0].to(dtype=dtype, device=device))
+    return hit
 
 
 def icosahedron_faces(level: int) -> Tensor:

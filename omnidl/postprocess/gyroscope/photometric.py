@@ -50,6 +50,21 @@ def apply_update(R: Tensor, w: Tensor) -> Tensor:
     return axis_angle_to_matrix(w) @ R
 
 
+def rodrigues(w: Tensor) -> Tensor:
+    """``exp([w]x)`` ``(..., 3, 3)`` of axis-angle ``w (..., 3)`` by Rodrigues' formula in ~25 ops (the kornia
+    conversion behind :func:`apply_update` takes ~200 for a 3x3 matrix); equal up to rounding, exact at 0."""
+    th = (w * w).sum(-1, keepdim=True).sqrt()[..., None]  # (..., 1, 1)
+    small = th < 1e-12
+    ths = torch.where(small, torch.ones_like(th), th)
+    a = torch.where(small, torch.ones_like(th), torch.sin(ths) / ths)                  # sin t / t
+    h = torch.sin(0.5 * ths) / ths
+    b = torch.where(small, torch.full_like(th, 0.5), 2 * h * h)                          # (1 - cos t) / t^2
+    x, y, z = w.unbind(-1)
+    zero = torch.zeros_like(x)
+    K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).view(*w.shape[:-1], 3, 3)
+    return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
+
+
 def rotation_jacobian(grad_cur: Tensor, R: Tensor, s: Tensor) -> Tensor:
     """``(R grad) x s``: ``grad_cur (..., N, 3)`` ambient gradients at ``p = R.T s``, ``R (..., 3, 3)``,
     ``s (N, 3)`` reference-frame points -> ``(..., N, 3)`` Jacobian rows w.r.t. ``w``."""
@@ -65,3 +80,51 @@ def gauss_newton_step(J: Tensor, e: Tensor, damping: float = 1e-9) -> Tensor:
     scale = torch.diagonal(A, dim1=-2, dim2=-1).mean(-1, keepdim=True).clamp_min(1e-30)
     A = A + damping * scale[..., None] * torch.eye(D, dtype=A.dtype, device=A.device)
     return -torch.linalg.solve(A, b)
+
+
+class SphereImage:
+    """An equirectangular ``image (B, C, H, W)`` prepared once for many bilinear reads at directions.
+
+    Same values as :func:`omnidl.geometry.panorama.sample_panorama` (pixel centres at ``j + 0.5``, longitude
+    wrapping across the seam, latitude clamped at the pole rows, longitude 0 exactly at the poles) up to
+    float rounding, but the wrap columns are added once here instead of on every call and the
+    direction -> grid conversion is a handful of fused ops: the solvers read the same image tens of times.
+    """
+
+    def __init__(self, image: Tensor) -> None:
+        if image.dim() != 4:
+            raise ValueError(f"SphereImage: image must have shape (B, C, H, W), got {tuple(image.shape)}")
+        self.H, self.W = int(image.shape[-2]), int(image.shape[-1])
+        self.padded = torch.cat([image[..., -1:], image, image[..., :1]], dim=-1)
+        # grid x = 2 (u + 1) / (W + 2) - 1 with u = (lon + pi) / (2 pi) W; grid y = 2 v / H - 1 = -2 lat / pi
+        self._sx = self.W / (math.pi * (self.W + 2))
+        self._ox = math.pi * self._sx + 2.0 / (self.W + 2) - 1.0
+
+    def read(self, d: Tensor) -> Tensor:
+        """Values ``(B, C, M)`` at directions ``d (B|1, M, 3)`` (any positive length; the scale is irrelevant)."""
+        x, y, z = d.unbind(-1)
+        sq = x * x + z * z
+        pole = sq <= 1e-30
+        lon = torch.atan2(x.masked_fill(pole, 0.0), z.masked_fill(pole, 1.0))
+        lat = torch.atan2(-y, sq.sqrt())
+        g = torch.stack([lon * self._sx + self._ox, lat * (-2.0 / math.pi)], -1)  # (B|1, M, 2)
+        src = self.padded
+        B = max(src.shape[0], g.shape[0])
+        if src.shape[0] != B:
+            src = src.expand(B, -1, -1, -1)
+        if g.shape[0] != B:
+            g = g.expand(B, -1, -1)
+        out = F.grid_sample(src, g.unsqueeze(1), mode="bilinear", padding_mode="border", align_corners=False)
+        return out[:, :, 0, :]
+
+
+def yaw_rotations(R0: Tensor, axis: Tensor, theta: Tensor) -> Tensor:
+    """``exp(theta [axis]x) @ R0`` by Rodrigues' formula: ``R0 (B, 3, 3)``, unit ``axis (B, 3)``, ``theta (B, T)``
+    -> ``(B, T, 3, 3)`` (the same rotations as :func:`apply_update` with ``w = theta * axis``, fewer ops)."""
+    a = axis
+    zero = torch.zeros_like(a[:, 0])
+    K = torch.stack([zero, -a[:, 2], a[:, 1], a[:, 2], zero, -a[:, 0], -a[:, 1], a[:, 0], zero], -1).view(-1, 3, 3)
+    K2 = K @ K
+    s, c = torch.sin(theta)[..., None, None], (1 - torch.cos(theta))[..., None, None]
+    E = torch.eye(3, dtype=R0.dtype, device=R0.device) + s * K.unsqueeze(1) + c * K2.unsqueeze(1)
+    return E @ R0.unsqueeze(1)

@@ -25,6 +25,7 @@ from torch import Tensor
 from omnidl.geometry.horizon import HorizonFitOptions, fit_horizon
 from omnidl.geometry.panorama import rotate_panorama
 from omnidl.geometry.rotations import matrix_to_euler, tilt_rotation, up_vector
+from omnidl.nn.threads import limit_threads
 
 from .mpp import mpp_samples, mpp_yaw
 from .pvg import pvg_refine
@@ -49,17 +50,25 @@ class GyroscopeOptions:
     pvg_max_iter: int = 20
     min_std: float = 1e-3              # grey-level std below this = black/flat frame: no estimate
     horizon: dict = field(default_factory=dict)  # HorizonFitOptions overrides
+    # intra-op threads of the photometric steps and the horizon fit (thousands of small ops): "auto" = the
+    # process setting while the CPUs are not oversubscribed, else 1 (a fork/join per op collapses on a busy
+    # machine; omnidl.nn.threads.auto_threads); an int caps it; None = the process setting
+    photometric_threads: int | str | None = "auto"
 
 
-def model_horizon_fn(model: torch.nn.Module, height: int = 128) -> HorizonFn:
-    """Wrap a HoLiNet-like model (outputs ``"horizon"``, ``"vp"`` logits) into a ``horizon_fn``."""
+def model_horizon_fn(model: torch.nn.Module, height: int = 128, threads: int | str | None = "auto") -> HorizonFn:
+    """Wrap a HoLiNet-like model (outputs ``"horizon"``, ``"vp"`` logits) into a ``horizon_fn``.
+
+    ``threads``: intra-op threads of the forward (see :func:`omnidl.nn.threads.limit_threads`): ``"auto"``
+    keeps the process setting unless the CPUs are oversubscribed, then runs on one thread (a small network
+    is thousands of short ops: measured 12x more CPU time on 2 threads than on 1 under load)."""
     def fn(images: Tensor) -> tuple[Tensor, Tensor]:
         p = next(model.parameters())
         x = F.interpolate(images.to(p.dtype).to(p.device), size=(height, 2 * height), mode="bilinear",
                           align_corners=False, antialias=True)
         was = model.training
         model.eval()
-        with torch.no_grad():
+        with torch.no_grad(), limit_threads(threads):
             out = model(x)
         model.train(was)
         return torch.sigmoid(out["horizon"]).float(), torch.sigmoid(out["vp"]).float()
@@ -95,7 +104,8 @@ class Gyroscope:
         if self.horizon_fn is None:
             return up_vector(images).expand(B, 3).clone(), torch.ones(B, dtype=torch.bool)
         hl, vp = self.horizon_fn(images)
-        res = fit_horizon(hl, vp, self.hopts)
+        with limit_threads(self.o.photometric_threads):
+            res = fit_horizon(hl, vp, self.hopts)
         return res["up"].to(images.dtype).cpu(), res["valid"].cpu()
 
     def set_reference(self, image: Tensor) -> None:
@@ -133,14 +143,15 @@ class Gyroscope:
         B = images.shape[0]
         mpp_cost = torch.full((B,), float("nan"))
         pvg_cost = torch.full((B,), float("nan"))
-        if self.o.use_mpp:
-            r = mpp_yaw(work, self.ref_work, R, axis, level=self.o.mpp_level, lambda_g=self.o.lambda_g,
-                        tries=self.o.mpp_tries, max_iter=self.o.mpp_max_iter, reference_samples=self.ref_mpp)
-            R, mpp_cost = r.rotation, r.cost
-        if self.o.use_pvg:
-            r = pvg_refine(work, self.ref_work, R, level=self.o.pvg_level, blur_px=self.o.pvg_blur,
-                           max_iter=self.o.pvg_max_iter)
-            R, pvg_cost = r.rotation, r.cost
+        with limit_threads(self.o.photometric_threads):
+            if self.o.use_mpp:
+                r = mpp_yaw(work, self.ref_work, R, axis, level=self.o.mpp_level, lambda_g=self.o.lambda_g,
+                            tries=self.o.mpp_tries, max_iter=self.o.mpp_max_iter, reference_samples=self.ref_mpp)
+                R, mpp_cost = r.rotation, r.cost
+            if self.o.use_pvg:
+                r = pvg_refine(work, self.ref_work, R, level=self.o.pvg_level, blur_px=self.o.pvg_blur,
+                               max_iter=self.o.pvg_max_iter)
+                R, pvg_cost = r.rotation, r.cost
         roll, pitch, yaw = matrix_to_euler(R)
         return {"rotation": R, "roll": roll, "pitch": pitch, "yaw": yaw, "up": up, "horizon_valid": ok,
                 "mpp_cost": mpp_cost, "pvg_cost": pvg_cost}

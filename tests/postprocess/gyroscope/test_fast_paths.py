@@ -1,0 +1,172 @@
+"""The fast gyroscope paths (prepared sphere images, cached MPP kernels, fused Gauss-Newton loops) give the
+reference implementation's results: 1e-5 in float32, 1e-12 in float64."""
+import math
+
+import pytest
+import torch
+
+from omnidl.geometry.panorama import sample_panorama
+from omnidl.geometry.rotations import random_tilt_rotation
+from omnidl.postprocess.gyroscope.icosahedron import icosahedron_vertices
+from omnidl.postprocess.gyroscope.mpp import mpp_field, mpp_table, mpp_vertex_field, mpp_yaw
+from omnidl.postprocess.gyroscope.photometric import SphereImage, apply_update, rodrigues, yaw_rotations
+from omnidl.postprocess.gyroscope.pvg import pvg_refine, spherical_gradient, spherical_gradient_fast
+from omnidl.postprocess.gyroscope.scene import procedural_panorama
+from omnidl.nn.threads import limit_threads
+
+TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
+
+
+def _frames(dtype, size=(64, 128), n=2):
+    R = random_tilt_rotation(n, math.radians(30), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ref = procedural_panorama(None, *size, seed=1).to(dtype)
+    cur = procedural_panorama(R, *size, seed=1).to(dtype)
+    return R.to(dtype), ref, cur
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sphere_image_reads_like_sample_panorama(dtype):
+    g = torch.Generator().manual_seed(0)
+    img = procedural_panorama(None, 32, 64, seed=3).to(dtype).expand(2, -1, -1, -1)
+    d = torch.randn(2, 300, 3, generator=g, dtype=dtype)
+    poles = torch.tensor([[0, 1.0, 0], [0, -1.0, 0], [1e-17, 1, 0], [0, 0, -1], [-1e-7, 0, -1]], dtype=dtype)
+    d = torch.cat([d, icosahedron_vertices(3, dtype)[None].expand(2, -1, -1), poles[None].expand(2, -1, -1)], 1)
+    torch.testing.assert_close(SphereImage(img).read(d), sample_panorama(img, d), rtol=0, atol=TOL[dtype])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_yaw_rotations_match_apply_update(dtype):
+    g = torch.Generator().manual_seed(1)
+    R0 = torch.linalg.qr(torch.randn(2, 3, 3, generator=g, dtype=dtype))[0]
+    a = torch.nn.functional.normalize(torch.randn(2, 3, generator=g, dtype=dtype), dim=-1)
+    th = torch.randn(2, 4, generator=g, dtype=dtype)
+    expect = apply_update(R0.unsqueeze(1), th[..., None] * a.unsqueeze(1))
+    torch.testing.assert_close(yaw_rotations(R0, a, th), expect, rtol=0, atol=TOL[dtype])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_spherical_gradient_fast_matches(dtype):
+    _, ref, _ = _frames(dtype)
+    gray = ref.mean(1, keepdim=True)
+    p = icosahedron_vertices(3, dtype)[None]
+    v0, g0 = spherical_gradient(gray, p)
+    v1, g1 = spherical_gradient_fast(SphereImage(gray), p)
+    torch.testing.assert_close(v1, v0, rtol=0, atol=TOL[dtype])
+    torch.testing.assert_close(g1, g0, rtol=0, atol=100 * TOL[dtype])  # differences of reads / 2 atan(h)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_mpp_table_and_vertex_field_match_mpp_field(dtype):
+    X = icosahedron_vertices(2, dtype)
+    I = torch.rand(2, X.shape[0], generator=torch.Generator().manual_seed(2), dtype=dtype)
+    I = I / I.sum(-1, keepdim=True)
+    from omnidl.cameras.equirectangular import Equirectangular
+    d = Equirectangular(width=32, height=16).unproject_grid(dtype).direction.reshape(-1, 3)
+    G, grad = mpp_field(X, I, d.unsqueeze(0).expand(2, -1, -1), 0.325, with_grad=True)
+    expect = torch.cat([G.unsqueeze(-1), grad], -1).transpose(1, 2).reshape(2, 4, 16, 32)
+    got = mpp_table(X, I, 0.325, 16)
+    scale = expect.abs().max()
+    torch.testing.assert_close(got / scale, expect / scale, rtol=0, atol=TOL[dtype])
+    Gx = mpp_field(X, I, X.unsqueeze(0), 0.325)[0]
+    torch.testing.assert_close(mpp_vertex_field(X, I, 0.325) / scale, Gx / scale, rtol=0, atol=TOL[dtype])
+    # not an icosahedron: the exact evaluation
+    torch.testing.assert_close(mpp_table(X.clone()[:-1], I[:, :-1], 0.325, 16).shape, torch.Size([2, 4, 16, 32]))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("kw", [dict(tries=4), dict(tries=1), dict(tries=1, grid_height=0, max_iter=6)])
+def test_mpp_fast_matches_reference(dtype, kw):
+    R, ref, cur = _frames(dtype)
+    fast = mpp_yaw(cur, ref, R, level=2, impl="fast", **kw)
+    slow = mpp_yaw(cur, ref, R, level=2, impl="reference", **kw)
+    tol = TOL[dtype]
+    torch.testing.assert_close(fast.yaw, slow.yaw, rtol=0, atol=tol)
+    torch.testing.assert_close(fast.rotation, slow.rotation, rtol=0, atol=tol)
+    torch.testing.assert_close(fast.cost, slow.cost, rtol=tol, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("start", ["near", "identity"])
+def test_pvg_fast_matches_reference(dtype, start):
+    R, ref, cur = _frames(dtype)
+    R0 = R if start == "near" else None
+    fast = pvg_refine(cur, ref, R0, level=3, max_iter=8, impl="fast")
+    slow = pvg_refine(cur, ref, R0, level=3, max_iter=8, impl="reference")
+    tol = TOL[dtype]
+    assert fast.iterations == slow.iterations
+    torch.testing.assert_close(fast.rotation, slow.rotation, rtol=0, atol=tol)
+    torch.testing.assert_close(fast.cost, slow.cost, rtol=0, atol=tol)
+    partial = dict(dofs=(False, True, False), blur_px=(1.0,))
+    torch.testing.assert_close(pvg_refine(cur, ref, R0, level=3, max_iter=5, impl="fast", **partial).rotation,
+                               pvg_refine(cur, ref, R0, level=3, max_iter=5, impl="reference", **partial).rotation,
+                               rtol=0, atol=tol)
+
+
+def test_bad_impl_names():
+    _, ref, cur = _frames(torch.float32, n=1)
+    with pytest.raises(ValueError, match="impl must be 'fast' or 'reference', got 'gpu'"):
+        mpp_yaw(cur, ref, impl="gpu")
+    with pytest.raises(ValueError, match="impl must be 'fast' or 'reference', got 'gpu'"):
+        pvg_refine(cur, ref, impl="gpu")
+
+
+def test_limit_threads_restores():
+    before = torch.get_num_threads()
+    with limit_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with limit_threads(None):
+        assert torch.get_num_threads() == before
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_rodrigues_matches_apply_update(dtype):
+    g = torch.Generator().manual_seed(3)
+    w = torch.randn(60, 3, generator=g, dtype=dtype) * torch.logspace(-12, 0.5, 60, dtype=dtype)[:, None]
+    w = torch.cat([w, torch.zeros(1, 3, dtype=dtype)])
+    eye = torch.eye(3, dtype=dtype).expand(61, 3, 3)
+    torch.testing.assert_close(rodrigues(w), apply_update(eye, w), rtol=0, atol=TOL[dtype])
+    assert torch.equal(rodrigues(torch.zeros(2, 3, dtype=dtype)), torch.eye(3, dtype=dtype).expand(2, 3, 3))
+
+
+def test_pipeline_thread_policy_does_not_change_the_estimate(monkeypatch):
+    """photometric_threads only changes how many intra-op threads run (1 when the CPUs are oversubscribed)."""
+    from omnidl.nn import threads as T
+    from omnidl.postprocess.gyroscope.pipeline import Gyroscope, GyroscopeOptions
+    R, ref, cur = _frames(torch.float32, n=1)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        out = {}
+        for policy in ("auto", 1, None):
+            monkeypatch.setattr(T, "runnable_tasks", lambda: 10 ** 6)  # "auto" -> 1 thread
+            g = Gyroscope(None, GyroscopeOptions(work_height=64, mpp_level=2, pvg_level=3, pvg_max_iter=5,
+                                                 photometric_threads=policy))
+            g.set_reference(ref[0])
+            out[policy] = g.estimate(cur)["rotation"]
+            assert torch.get_num_threads() == 2
+        assert GyroscopeOptions().photometric_threads == "auto"
+        torch.testing.assert_close(out["auto"], out[None], rtol=0, atol=1e-5)
+        assert torch.equal(out["auto"], out[1])
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_model_horizon_fn_thread_policy(monkeypatch):
+    from omnidl.models import create_model
+    from omnidl.nn import threads as T
+    from omnidl.postprocess.gyroscope.pipeline import model_horizon_fn
+    torch.manual_seed(0)
+    m = create_model("holinet", backbone="resnet18", width=0.125, conv="standard")
+    x = torch.rand(1, 3, 64, 128)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        ref = model_horizon_fn(m, 32, threads=None)(x)
+        monkeypatch.setattr(T, "runnable_tasks", lambda: 10 ** 6)
+        got = model_horizon_fn(m, 32)(x)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
