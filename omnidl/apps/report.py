@@ -8,9 +8,10 @@ Writes ``results.md`` and ``results.csv``; when jobs report metrics per rotation
 (a ``rotation`` mapping ``angle -> metrics`` in ``metrics.json``), also ``rotation.png`` — as Fig. 4.5, one
 panel per unit (metres, fractions, ...), one curve per job and metric, the legend beside the panels.
 
-Units: omnidl's metrics are fractions (mIoU 0.42, not 42); ``results.csv`` keeps them so. Only the printed
-thesis-style table (``results.md`` and the terminal) shows mIoU and mAcc in percent, in columns labelled (%).
-A fraction metric above 1 (a job that wrote percent) is reported on stderr.
+Units: omnidl's metrics are fractions (mIoU 0.42, not 42; layout IoU and CEN too); ``results.csv`` keeps them
+so. Only the printed thesis-style table (``results.md`` and the terminal) shows mIoU, mAcc, the layout IoUs and
+CEN in percent, in columns labelled (%). A fraction metric outside [0, 1] (a job that wrote percent) is reported
+on stderr. Per-group keys such as ``iou_3d@4`` (a layout protocol's corner-count groups) have their base key's unit.
 """
 from __future__ import annotations
 
@@ -27,23 +28,29 @@ from typing import Any
 from omnidl.utils.io import atomic_write, atomic_write_text
 
 PREFERRED = ["mre", "mae", "rmse", "rmse_log", "rmselog", "delta1", "delta2", "delta3", "miou", "macc",
-             "ce", "cen", "iou3d", "iou2d"]
+             "ce", "cen", "iou_3d", "iou_2d", "iou3d", "iou2d"]
 PRETTY = {"mre": "MRE", "mae": "MAE", "rmse": "RMSE", "rmse_log": "RMSElog", "rmselog": "RMSElog", "delta1": "δ¹",
           "delta2": "δ²", "delta3": "δ³", "miou": "mIoU", "macc": "mAcc", "ce": "CE", "cen": "CEN",
-          "iou3d": "3D IoU", "iou2d": "2D IoU"}
+          "iou_3d": "3D IoU", "iou_2d": "2D IoU", "iou3d": "3D IoU", "iou2d": "2D IoU"}
 LOWER_IS_BETTER = {"mre", "mae", "rmse", "rmse_log", "rmselog", "ce", "cen", "loss"}
+#: layout IoU/CEN keys: LayoutMetrics / LayoutProtocolMetrics names and the layout hooks' ``layout_`` scores
+_LAYOUT_PERCENT = {f"{p}{k}" for p in ("", "layout_") for k in ("cen", "iou_3d", "iou_3d_u2s", "iou_2d")}
 #: fraction metrics the printed table shows in percent (as the thesis' tables do)
-PERCENT = {"miou", "macc"}
+PERCENT = {"miou", "macc", "iou3d", "iou2d", "corner_error", "pixel_error"} | _LAYOUT_PERCENT
 #: metrics whose values are fractions in [0, 1]
-FRACTIONS = {"delta1", "delta2", "delta3", "miou", "macc", "pixel_acc", "layout_fail_rate", "covered_fraction"}
+FRACTIONS = ({"delta1", "delta2", "delta3", "miou", "macc", "pixel_acc", "layout_fail_rate", "covered_fraction",
+              "layout_ok", "gt_skipped", "depth_delta1", "horizon_no_line", "horizon_success",
+              "upright_baseline_success", "rotation_success"} | PERCENT
+             | {f"{m}_{k}" for m in ("edge", "corner") for k in ("precision", "recall", "accuracy", "iou")})
 #: the unit of each metric (the rotation plot draws one panel per unit)
-UNITS = {"mae": "metres", "rmse": "metres", "ce": "metres", "rmse_log": "log metres", "rmselog": "log metres",
-         "mre": "relative error", **{k: "fraction" for k in FRACTIONS}}
+UNITS = {"mae": "metres", "rmse": "metres", "ce": "metres", "layout_ce": "metres", "depth_rmse": "metres",
+         "rmse_log": "log metres", "rmselog": "log metres", "mre": "relative error",
+         **{k: "fraction" for k in FRACTIONS}}
 
 
 def metric_unit(key: str) -> str:
     """``"metres"``, ``"fraction"``, ``"degrees"``, ... for a metric key (its last ``/`` part)."""
-    s = _short(key)
+    s = _base(key)
     if s in UNITS:
         return UNITS[s]
     if s.endswith("_deg") or s.endswith("_err_deg"):
@@ -67,6 +74,11 @@ def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
 
 def _short(key: str) -> str:
     return key.rsplit("/", 1)[-1].lower().replace("δ", "delta")
+
+
+def _base(key: str) -> str:
+    """:func:`_short` without a group suffix (``iou_3d@4`` -> ``iou_3d``): the name that fixes the unit."""
+    return _short(key).split("@", 1)[0]
 
 
 def _order(keys: list[str]) -> list[str]:
@@ -131,7 +143,7 @@ def check_fractions(records: list[dict[str, Any]]) -> list[str]:
     out = []
     for r in records:
         for k, v in r["metrics"].items():
-            if _short(k) in FRACTIONS and isinstance(v, (int, float)) and math.isfinite(v) and not 0 <= v <= 1:
+            if _base(k) in FRACTIONS and isinstance(v, (int, float)) and math.isfinite(v) and not 0 <= v <= 1:
                 out.append(f"report: warning: {r['path']}: {k} = {v} is outside [0, 1]; omnidl writes fractions "
                            "(was it written in percent?)")
     return out
@@ -141,7 +153,8 @@ def table(records: list[dict[str, Any]], columns: list[str] | None = None,
           all_metrics: bool = False, percent: bool = False) -> tuple[list[str], list[list[str]]]:
     """Header and rows. By default only the thesis' table metrics (MRE ... mAcc, layout CE/IoU) are columns,
     taken from the final validation (``final/``) or evaluation (``metrics/``) results; ``all_metrics`` keeps
-    every scalar. ``percent``: mIoU/mAcc as percentages (the printed table; the header then says (%))."""
+    every scalar. ``percent``: the :data:`PERCENT` fractions (mIoU, mAcc, layout IoUs, CEN) as percentages (the
+    printed table; the header then says (%))."""
     keys = columns or _order(sorted({k for r in records for k in r["metrics"]}))
     if not columns and not all_metrics:
         chosen: dict[str, str] = {}
@@ -158,7 +171,7 @@ def table(records: list[dict[str, Any]], columns: list[str] | None = None,
             v = r["metrics"].get(k)
             if v is None or (isinstance(v, float) and math.isnan(v)):
                 row.append("-")
-            elif percent and _short(k) in PERCENT:
+            elif percent and _base(k) in PERCENT:
                 row.append(f"{100 * v:.2f}")
             else:
                 row.append(f"{v:.4f}")
@@ -167,10 +180,11 @@ def table(records: list[dict[str, Any]], columns: list[str] | None = None,
 
 
 def to_markdown(header: list[str], rows: list[list[str]], percent: bool = True) -> str:
-    """The printed table; with ``percent`` (rows made by ``table(..., percent=True)``) mIoU/mAcc say (%)."""
+    """The printed table; with ``percent`` (rows made by ``table(..., percent=True)``) the :data:`PERCENT` columns
+    say (%)."""
     def label(h: str) -> str:
         s = _short(h)
-        unit = " (%)" if percent and s in PERCENT else ""
+        unit = " (%)" if percent and _base(h) in PERCENT else ""
         return PRETTY.get(s, h) + unit + (" ↓" if s in LOWER_IS_BETTER else " ↑" if s in PREFERRED else "")
     arrows = [label(h) for h in header]
     arrows[0] = header[0]

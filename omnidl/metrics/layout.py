@@ -129,9 +129,10 @@ def layout_scores(pred_corners: np.ndarray, pred_h: tuple[float, float], gt_corn
     Args:
         pred_corners, gt_corners: ``(N, 2)`` / ``(M, 2)`` top-view polygons (metres).
         pred_h, gt_h: ``(h_floor, h_ceiling)``.
-    Returns: ``ce`` (m), ``cen`` (% of the ground-truth 3D bounding-box diagonal), ``iou_3d``,
-    ``iou_3d_u2s`` (prediction rescaled so its floor distance equals the ground truth's, as
-    methods without scale are evaluated with a known camera height), ``iou_2d`` (all in %).
+    Returns: ``ce`` (m), ``cen`` (``ce`` as a fraction of the ground-truth 3D bounding-box diagonal),
+    ``iou_3d``, ``iou_3d_u2s`` (prediction rescaled so its floor distance equals the ground truth's, as
+    methods without scale are evaluated with a known camera height), ``iou_2d``. ``cen`` and the IoUs are
+    fractions in [0, 1] like every omnidl metric (printed tables show them in percent, labelled ``(%)``).
     """
     def c3(c, h):
         c = np.asarray(c, float)
@@ -140,10 +141,10 @@ def layout_scores(pred_corners: np.ndarray, pred_h: tuple[float, float], gt_corn
     gt3 = c3(gt_corners, gt_h)
     ce = corner_error(c3(pred_corners, pred_h), gt3)
     k = gt_h[0] / pred_h[0] if pred_h[0] != 0 else 1.0
-    return {"ce": ce, "cen": 100.0 * ce / max(bbox_diagonal(gt3), 1e-12),
-            "iou_3d": 100.0 * iou_3d(pred_corners, pred_h, gt_corners, gt_h),
-            "iou_3d_u2s": 100.0 * iou_3d(np.asarray(pred_corners) * k, (pred_h[0] * k, pred_h[1] * k), gt_corners, gt_h),
-            "iou_2d": 100.0 * iou_2d(pred_corners, gt_corners)}
+    return {"ce": ce, "cen": ce / max(bbox_diagonal(gt3), 1e-12),
+            "iou_3d": iou_3d(pred_corners, pred_h, gt_corners, gt_h),
+            "iou_3d_u2s": iou_3d(np.asarray(pred_corners) * k, (pred_h[0] * k, pred_h[1] * k), gt_corners, gt_h),
+            "iou_2d": iou_2d(pred_corners, gt_corners)}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -240,6 +241,8 @@ class LayoutMetrics:
       ``postprocess: [layout_atlanta]``, and the batch has ground-truth corners: the data engine's
       ``corners_cam``/``num_walls`` or ``corners_3d``): CE, CEN, 3D IoU, up-to-scale 3D IoU and 2D IoU
       averaged over the images where a layout was recovered; ``layout_fail_rate`` counts the others.
+
+    Units: metres (``ce``), pixels (``boundary_px``); everything else is a fraction in [0, 1].
     """
 
     def __init__(self, corner_threshold: float = 0.5, edge_thickness: float = 1.0, corner_radius: float = 3.0,

@@ -2,7 +2,7 @@
 
 Every protocol scores one image at a time and averages over images (as both peer scripts do):
 
-* ``iou_2d``, ``iou_3d`` (%): floor-plan IoU of the two room polygons and IoU of the extruded rooms. Both
+* ``iou_2d``, ``iou_3d`` (fractions): floor-plan IoU of the two room polygons and IoU of the extruded rooms. Both
   rooms are first scaled so that the floor lies ``camera_height`` below the camera (the datasets' fixed
   camera height, 1.6 m), so the floors coincide and the volume overlap is ``area(P ∩ Q) * min(h_P, h_Q)``
   (``h`` = floor-to-ceiling height). Polygons may be non-convex; areas are exact
@@ -10,11 +10,14 @@ Every protocol scores one image at a time and averages over images (as both peer
 * ``depth_rmse`` (m), ``depth_delta1`` (fraction): RMSE and ``max(p/g, g/p) < 1.25`` over every pixel of the
   *layout depth* maps (range from the camera to the first ceiling / wall / floor surface along each pixel's
   ray) of a ``width x height`` panorama, for both rooms at the fixed camera height.
-* cuboids only (ground truth and prediction with 4 corners): ``corner_error`` (%): mean distance of the 8
-  matched corner pixels (ceiling and floor of each corner, both sets sorted by column) over the image
-  diagonal; ``pixel_error`` (%): pixels whose surface label (ceiling / wall /
+* cuboids only (ground truth and prediction with 4 corners): ``corner_error`` (fraction): mean distance of
+  the 8 matched corner pixels (ceiling and floor of each corner, both sets sorted by column) over the image
+  diagonal; ``pixel_error`` (fraction): pixels whose surface label (ceiling / wall /
   floor) differs.
 * ``iou_2d@4|6|8|10+|odd`` / ``iou_3d@...``: the IoUs grouped by the ground truth's corner count.
+
+Units: every score is a fraction in [0, 1] except ``depth_rmse`` (the rooms' units, metres); the peers' papers
+print the IoUs, CE and PE in percent (multiply by 100 for such a table and label its columns ``(%)``).
 
 Protocols (how each matches the peer script's documented behaviour):
 
@@ -131,12 +134,12 @@ def corner_pixels(polygon: np.ndarray, heights: tuple[float, float], width: int,
 
 
 def cuboid_errors(pred: tuple, gt: tuple, width: int, height: int) -> dict[str, float]:
-    """``corner_error`` and ``pixel_error`` (%) of two 4-corner rooms ``(polygon, (h_floor, h_ceiling))``."""
+    """``corner_error`` and ``pixel_error`` (fractions) of two 4-corner rooms ``(polygon, (h_floor, h_ceiling))``."""
     cp, cg = corner_pixels(*pred, width, height), corner_pixels(*gt, width, height)
-    ce = np.linalg.norm(cp - cg, axis=-1).mean() / math.hypot(width, height) * 100
+    ce = np.linalg.norm(cp - cg, axis=-1).mean() / math.hypot(width, height)
     _, lp = layout_surfaces(*pred, width, height)
     _, lg = layout_surfaces(*gt, width, height)
-    return {"corner_error": float(ce), "pixel_error": float((lp != lg).mean() * 100)}
+    return {"corner_error": float(ce), "pixel_error": float((lp != lg).mean())}
 
 
 def layout_depth_errors(pred: tuple, gt: tuple, width: int, height: int) -> dict[str, float]:
@@ -151,7 +154,7 @@ def protocol_scores(pred_polygon: np.ndarray, pred_heights: tuple[float, float],
                     gt_heights: tuple[float, float], protocol: str | LayoutProtocol = "horizonnet") -> dict[str, float]:
     """All scores of one image under ``protocol`` (module docstring). Heights are ``(h_floor, h_ceiling)``
     relative to the camera. A prediction that is not a simple polygon (fewer than 3 corners, crossing walls)
-    scores 0 % IoU; one that does not surround the camera gets its IoUs only (no layout depth / corner
+    scores 0 IoU; one that does not surround the camera gets its IoUs only (no layout depth / corner
     metrics)."""
     proto = get_layout_protocol(protocol) if isinstance(protocol, str) else protocol
     gp, gh = at_camera_height(gt_polygon, gt_heights, proto.camera_height)
@@ -159,7 +162,7 @@ def protocol_scores(pred_polygon: np.ndarray, pred_heights: tuple[float, float],
     if len(pred_polygon) < 3 or not is_simple(pred_polygon, 0.0):
         return {"iou_2d": 0.0, "iou_3d": 0.0}
     pp, ph = at_camera_height(pred_polygon, pred_heights, proto.camera_height)
-    out = {"iou_2d": 100.0 * iou_2d(pp, gp), "iou_3d": 100.0 * iou_3d(pp, ph, gp, gh)}
+    out = {"iou_2d": iou_2d(pp, gp), "iou_3d": iou_3d(pp, ph, gp, gh)}
     try:
         out.update(layout_depth_errors((pp, ph), (gp, gh), proto.depth_width, proto.depth_height))
         if len(pp) == 4 and len(gp) == 4:
@@ -178,7 +181,7 @@ class LayoutProtocolMetrics:
         maps: also report the boundary / edge / corner map metrics of :class:`~omnidl.metrics.layout.LayoutMetrics`.
         corner_threshold: for those maps.
 
-    A failed prediction (no layout) counts as 0 % IoU and in ``layout_fail_rate`` (the peers' scripts need a
+    A failed prediction (no layout) counts as 0 IoU and in ``layout_fail_rate`` (the peers' scripts need a
     layout for every image); a ground truth that is not a simple polygon is skipped (``gt_skipped``), as
     HorizonNet's ``eval_general.py`` does.
     """

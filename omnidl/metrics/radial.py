@@ -191,7 +191,8 @@ def plot_radial(curves: Mapping[str, Sequence[Mapping[str, float]]], metrics: Se
     n = len(metrics)
     cols = min(n, 4)
     nrows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(nrows, cols, figsize=(4 * cols, 3.2 * nrows), squeeze=False)
+    # constrained layout sizes the margins to the tick labels, axis labels and titles (nothing is cut off)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4 * cols, 3.2 * nrows), squeeze=False, layout="constrained")
     colours = ["tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:brown"]
     for ax, m in zip(axes.ravel(), metrics):
         for c, (label, rows) in enumerate(curves.items()):
@@ -210,8 +211,6 @@ def plot_radial(curves: Mapping[str, Sequence[Mapping[str, float]]], metrics: Se
     axes.ravel()[0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.12 / nrows, top=1 - (0.16 if title else 0.08) / nrows,
-                        wspace=0.3, hspace=0.45)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, format=path.suffix.lstrip(".") or "png"))

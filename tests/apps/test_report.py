@@ -64,3 +64,30 @@ def test_metrics_json_that_is_not_an_object_is_skipped(tmp_path, capsys):
     (tmp_path / "1" / "metrics.json").write_text("[1, 2]")
     assert main([str(tmp_path)]) == 0
     assert "expected a JSON object" in capsys.readouterr().err
+
+
+def test_layout_iou_and_cen_are_fractions_printed_in_percent(tmp_path, capsys):
+    """Issue 14: layout IoU/CEN (LayoutMetrics, the layout hooks' layout_* scores, protocol groups) are fractions in
+    metrics.json and results.csv; results.md shows them x 100 in (%) columns; a percent value is flagged."""
+    import csv
+    _job(tmp_path, 0, "H-NC", {"final": {"val/ce": 0.0123, "val/cen": 0.0021, "val/iou_3d": 0.9512, "val/iou_2d": 0.97,
+                                         "val/layout_iou_3d": 0.95, "val/iou_2d@4": 0.9}})
+    _job(tmp_path, 1, "H-NC-old", {"final": {"val/ce": 0.0123, "val/iou_3d": 95.12}})
+    written = write_report(tmp_path)
+    md = written["markdown"].read_text()
+    assert "CE ↓" in md and "CEN (%) ↓" in md and "3D IoU (%) ↑" in md and "2D IoU (%) ↑" in md
+    assert "| H-NC | 0.0123 | 0.21 | 95.12 | 97.00 |" in md
+    rows = list(csv.DictReader(open(written["csv"])))
+    assert rows[0]["final/val/iou_3d"] == "0.9512" and rows[0]["final/val/cen"] == "0.0021"
+    err = capsys.readouterr().err
+    assert "val/iou_3d = 95.12 is outside [0, 1]" in err
+    assert main([str(tmp_path), "--all"]) == 0
+    out = capsys.readouterr().out
+    assert "layout_iou_3d (%)" in out and "iou_2d@4 (%)" in out and "| 90.00 |" in out
+
+
+def test_layout_units():
+    from omnidl.apps.report import metric_unit
+    assert [metric_unit(k) for k in ("val/iou_3d", "val/iou_2d@odd", "val/layout_iou_3d", "val/cen", "val/ce",
+                                     "val/layout_ce", "val/edge_iou", "val/corner_error")] == \
+        ["fraction"] * 4 + ["metres"] * 2 + ["fraction"] * 2

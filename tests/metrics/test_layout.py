@@ -50,11 +50,11 @@ def test_corner_error_hungarian_and_unequal_counts():
 def test_layout_scores_perfect_and_scaled():
     poly = np.array([[-2, -1], [3, -1], [3, 2], [-2, 2]], float)
     s = layout_scores(poly, (-1.5, 1.2), poly, (-1.5, 1.2))
-    assert s["ce"] == 0 and s["iou_3d"] == pytest.approx(100) and s["iou_2d"] == pytest.approx(100)
+    assert s["ce"] == 0 and s["iou_3d"] == pytest.approx(1.0) and s["iou_2d"] == pytest.approx(1.0)
     s2 = layout_scores(poly * 0.9, (-1.35, 1.08), poly, (-1.5, 1.2))
-    assert s2["iou_3d"] < 80 and s2["iou_3d_u2s"] == pytest.approx(100)          # up-to-scale IoU ignores scale
+    assert s2["iou_3d"] < 0.80 and s2["iou_3d_u2s"] == pytest.approx(1.0)        # up-to-scale IoU ignores scale
     diag = np.linalg.norm([5, 3, 2.7])
-    assert s2["cen"] == pytest.approx(100 * s2["ce"] / diag)
+    assert s2["cen"] == pytest.approx(s2["ce"] / diag)
 
 
 def test_edge_and_corner_maps_and_scores():
@@ -90,5 +90,17 @@ def test_layout_metrics_object_reads_hook_layouts_from_outputs():
     outputs["layout"] = get_hook("layout_manhattan")(outputs, batch, camera=ring_camera(1.0, 256))["layout"]
     m.update(outputs, batch)
     r = m.compute()
-    assert r["ce"] < 0.05 and r["iou_3d"] > 95 and r["layout_fail_rate"] == 0
+    assert r["ce"] < 0.05 and r["iou_3d"] > 0.95 and r["layout_fail_rate"] == 0
     assert r["edge_iou"] == pytest.approx(1.0) and r["boundary_px"] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_layout_scores_are_fractions():
+    """Issue 14: CEN and the IoUs are fractions in [0, 1] like every omnidl metric (CE stays in metres)."""
+    poly = np.array([[-2, -1], [3, -1], [3, 2], [-2, 2]], float)
+    for pred, h in ((poly, (-1.5, 1.2)), (poly * 0.5 + 0.3, (-1.4, 1.0)), (poly * 3.0, (-2.0, 2.5))):
+        s = layout_scores(pred, h, poly, (-1.5, 1.2))
+        assert set(s) == {"ce", "cen", "iou_3d", "iou_3d_u2s", "iou_2d"}
+        for k in ("cen", "iou_3d", "iou_3d_u2s", "iou_2d"):
+            assert 0.0 <= s[k] <= 1.0, (k, s[k])
+    s = layout_scores(poly * 0.5, (-1.5, 1.2), poly, (-1.5, 1.2))
+    assert s["iou_2d"] == pytest.approx(0.25) and s["iou_3d"] == pytest.approx(0.25)   # a quarter of the floor area

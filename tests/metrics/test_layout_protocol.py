@@ -26,17 +26,17 @@ SLANT = np.array([[-1.8, -1.2], [1.6, -2.0], [2.4, 1.0], [0.2, 2.2], [-1.6, 1.4]
 def test_iou_hand_computed(pred, ph, gt, gh, iou2, iou3):
     for name in LAYOUT_PROTOCOLS:
         s = protocol_scores(pred, ph, gt, gh, name)
-        assert s["iou_2d"] == pytest.approx(100 * iou2, abs=1e-6)
-        assert s["iou_3d"] == pytest.approx(100 * iou3, abs=1e-6)
+        assert s["iou_2d"] == pytest.approx(iou2, abs=1e-8)
+        assert s["iou_3d"] == pytest.approx(iou3, abs=1e-8)
 
 
 def test_fixed_camera_height_rescales_both_rooms():
     # the prediction at half scale with its floor at -0.8 m is the same room at camera height 1.6 m
     s = protocol_scores((BOX + [1.0, 0.0]) / 2, (-0.8, 0.5), BOX, (-1.6, 1.4), "horizonnet")
-    assert s["iou_2d"] == pytest.approx(60.0, abs=1e-6)
-    assert s["iou_3d"] == pytest.approx(100 * 31.2 / 58.4, abs=1e-6)
+    assert s["iou_2d"] == pytest.approx(0.60, abs=1e-8)
+    assert s["iou_3d"] == pytest.approx(31.2 / 58.4, abs=1e-8)
     # without rescaling (metric protocol) the half-size room overlaps much less
-    assert protocol_scores((BOX + [1.0, 0.0]) / 2, (-0.8, 0.5), BOX, (-1.6, 1.4), "metric")["iou_2d"] < 30
+    assert protocol_scores((BOX + [1.0, 0.0]) / 2, (-0.8, 0.5), BOX, (-1.6, 1.4), "metric")["iou_2d"] < 0.30
     p, h = at_camera_height(BOX, (-3.2, 2.0), 1.6)
     assert np.allclose(p, BOX / 2) and h == (-1.6, 1.0)
 
@@ -50,16 +50,16 @@ def test_iou_matches_shapely(room):
         s = protocol_scores(pred, (-1.6, 1.1), room, (-1.6, 1.3), "horizonnet")
         P, Q = shapely.Polygon(pred), shapely.Polygon(room)
         inter = P.intersection(Q).area
-        assert s["iou_2d"] == pytest.approx(100 * inter / (P.area + Q.area - inter), abs=1e-6)
+        assert s["iou_2d"] == pytest.approx(inter / (P.area + Q.area - inter), abs=1e-8)
         v = inter * 2.7
-        assert s["iou_3d"] == pytest.approx(100 * v / (P.area * 2.7 + Q.area * 2.9 - v), abs=1e-6)
+        assert s["iou_3d"] == pytest.approx(v / (P.area * 2.7 + Q.area * 2.9 - v), abs=1e-8)
 
 
 @pytest.mark.parametrize("room", [BOX, ELL, TRI, SLANT])
 @pytest.mark.parametrize("name", list(LAYOUT_PROTOCOLS))
 def test_perfect_prediction(room, name):
     s = protocol_scores(room, (-1.5, 1.2), room, (-1.5, 1.2), name)
-    assert s["iou_2d"] == pytest.approx(100.0, abs=1e-9) and s["iou_3d"] == pytest.approx(100.0, abs=1e-9)
+    assert s["iou_2d"] == pytest.approx(1.0, abs=1e-11) and s["iou_3d"] == pytest.approx(1.0, abs=1e-11)
     assert s["depth_rmse"] == 0.0 and s["depth_delta1"] == 1.0
     if len(room) == 4:
         assert s["corner_error"] == 0.0 and s["pixel_error"] == 0.0
@@ -104,14 +104,14 @@ def test_cuboid_corner_error_hand_computed():
     assert np.allclose(np.sort(c[:, 0, 0]), [W / 8, 3 * W / 8, 5 * W / 8, 7 * W / 8])
     r, r2 = 2 * math.sqrt(2), 2.5 * math.sqrt(2)
     dv = [(math.atan(1.2 / r) - math.atan(1.2 / r2)) / math.pi * H, (math.atan(1.6 / r) - math.atan(1.6 / r2)) / math.pi * H]
-    ce = (dv[0] + dv[1]) / 2 / math.hypot(W, H) * 100
+    ce = (dv[0] + dv[1]) / 2 / math.hypot(W, H)
     s = protocol_scores(pred, (-1.6, 1.2), gt, (-1.6, 1.2), "metric")
-    assert s["corner_error"] == pytest.approx(ce, abs=1e-6)
+    assert s["corner_error"] == pytest.approx(ce, abs=1e-8)
     _, la = _brute_force(gt, -1.6, 1.2, 64, 32)
     _, lb = _brute_force(pred, -1.6, 1.2, 64, 32)
     from omnidl.metrics.layout_protocol import cuboid_errors
     pe = cuboid_errors((pred, (-1.6, 1.2)), (gt, (-1.6, 1.2)), 64, 32)["pixel_error"]
-    assert pe == pytest.approx(100 * (la != lb).mean(), abs=1e-9) and pe > 0
+    assert pe == pytest.approx((la != lb).mean(), abs=1e-11) and pe > 0
 
 
 def test_corner_error_ignores_polygon_orientation():
@@ -147,10 +147,10 @@ def test_metric_object_averages_groups_and_failures():
                {"ok": False}, {"ok": True, "corners_2d": TRI.tolist(), "h_floor": -1.6, "h_ceiling": 1.2}]
     m.update({"layout": layouts}, batch)
     out = m.compute()
-    assert out["iou_2d"] == pytest.approx((60.0 + 0.0 + 100.0) / 3, abs=1e-6)
+    assert out["iou_2d"] == pytest.approx((0.60 + 0.0 + 1.0) / 3, abs=1e-8)
     assert out["layout_fail_rate"] == pytest.approx(1 / 3) and out["gt_skipped"] == 0.0
-    assert out["iou_2d@4"] == pytest.approx(60.0, abs=1e-6) and out["iou_2d@6"] == 0.0
-    assert out["iou_2d@odd"] == pytest.approx(100.0)
+    assert out["iou_2d@4"] == pytest.approx(0.60, abs=1e-8) and out["iou_2d@6"] == 0.0
+    assert out["iou_2d@odd"] == pytest.approx(1.0)
     m.reset()
     assert m.compute() == {}
 
@@ -209,5 +209,16 @@ def test_ground_truth_targets_through_the_hook_score_near_100(tmp_path, room, ho
     m = LayoutProtocolMetrics("horizonnet", maps=False)
     m.update(outputs, batch)
     out = m.compute()
-    assert out["layout_fail_rate"] == 0.0 and out["iou_2d"] > 99.9 and out["iou_3d"] > 99.9
-    assert out["depth_rmse"] < 1e-3 and out.get("corner_error", 0.0) < 0.01 and out.get("pixel_error", 0.0) < 0.01
+    assert out["layout_fail_rate"] == 0.0 and out["iou_2d"] > 0.999 and out["iou_3d"] > 0.999
+    assert out["depth_rmse"] < 1e-3 and out.get("corner_error", 0.0) < 1e-4 and out.get("pixel_error", 0.0) < 1e-4
+
+
+@pytest.mark.parametrize("name", list(LAYOUT_PROTOCOLS))
+def test_scores_are_fractions(name):
+    """Issue 14: IoUs, corner and pixel error are fractions in [0, 1] (depth_rmse in metres); a cuboid
+    half a metre off scores a corner error well below 1 (it was in percent before)."""
+    s = protocol_scores(BOX + [0.5, 0.0], (-1.6, 1.2), BOX, (-1.6, 1.2), name)
+    assert {"iou_2d", "iou_3d", "corner_error", "pixel_error", "depth_delta1", "depth_rmse"} <= set(s)
+    for k in ("iou_2d", "iou_3d", "corner_error", "pixel_error", "depth_delta1"):
+        assert 0.0 <= s[k] <= 1.0, (k, s[k])
+    assert 0.0 < s["corner_error"] < 0.1 and 0.0 < s["pixel_error"] < 0.5 and 0.5 < s["iou_2d"] < 1.0

@@ -84,3 +84,24 @@ def test_errors_and_outputs(tmp_path):
     assert text.splitlines()[0].startswith("r_lo,r_hi,r_mid,pixels")
     p = plot_radial({"Std": m.table(), "Calib": m.table()}, ["mre", "miou"], tmp_path / "r.png")
     assert p.stat().st_size > 1000
+
+
+@pytest.mark.parametrize("metrics", [["mre"], ["mre", "delta1"], ["mre", "delta1", "mre", "delta1", "mre"]])
+def test_plot_labels_stay_inside_the_figure(tmp_path, monkeypatch, metrics):
+    """The x-axis labels, tick labels and titles of every panel are drawn inside the figure (none cut off)."""
+    import matplotlib.pyplot as plt
+    figs = []
+    close = plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    rows = [{"r_mid": r, "mre_mean": 0.1 + r / 1e3, "mre_std": 0.02, "delta1_mean": 0.9, "delta1_std": 0.03}
+            for r in (20.0, 60.0, 100.0)]
+    plot_radial({"A": rows, "B": rows}, metrics, tmp_path / "r.png", title="t" if len(metrics) != 2 else "")
+    fig = figs[0]
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    box = fig.bbox
+    for ax in fig.axes[:len(metrics)]:
+        assert ax.xaxis.label.get_text() == "distance to the principal point (px)"
+        e = ax.get_tightbbox(r)             # what is drawn of the panel: ticks, tick labels, axis labels, title
+        assert box.x0 - 0.5 <= e.x0 and e.x1 <= box.x1 + 0.5 and box.y0 - 0.5 <= e.y0 and e.y1 <= box.y1 + 0.5, (e, box)
+    close(fig)

@@ -14,7 +14,8 @@ not observable, only the smallest consistent room can be recovered).
         [--all] [--no-progress]
 
 The printed tables have the thesis' columns (CE, CEN, 3D IoU, 2D IoU over every room, failures, time);
-``--all`` adds the occlusion breakdown (21 columns). CE in metres, CEN and IoU in %.
+``--all`` adds the occlusion breakdown (21 columns). CE in metres; CEN and IoU printed in % (columns labelled
+``(%)``). The rows of :func:`run_study` keep omnidl's units: CEN and IoU as fractions in [0, 1].
 """
 from __future__ import annotations
 
@@ -95,7 +96,7 @@ def sample_rooms(n: int, manhattan: bool, rc: float, seed: int = 0, occlusion_fr
 
 def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, progress: bool = True,
               occlusion_free: bool = False) -> list[dict]:
-    """Rows of the acceptance table (one per world x boundary kind).
+    """Rows of the acceptance table (one per world x boundary kind); CE in metres, CEN and IoUs as fractions.
 
     Every room counts in the ``*_all`` means; the same means are also given on the occlusion-free
     rooms, on the occluded ones, and on the rooms with two or more consecutive hidden walls
@@ -148,6 +149,13 @@ def run_study(n: int = 200, width: int = 1024, rc: float = 1.0, seed: int = 0, p
 #: the compact table: (header, row key, digits) — the thesis' Table 5.2 columns over every room
 COMPACT = (("rooms", "rooms", None), ("failed", "failed", None), ("CE (m) ↓", "ce_all", 4), ("CEN (%) ↓", "cen_all", 3),
            ("3D IoU (%) ↑", "iou_3d_all", 2), ("2D IoU (%) ↑", "iou_2d_all", 2), ("ms/layout", "ms_per_layout", 1))
+#: row-key prefixes of fraction metrics, printed in percent in the "(%)" columns
+PERCENT_KEYS = ("cen_", "iou_")
+
+
+def _shown(key: str, v):
+    """The printed value of row ``key``: fractions (CEN, IoU) in percent, anything else as is."""
+    return 100.0 * v if key.startswith(PERCENT_KEYS) else v
 
 
 def _cell(v, digits: int | None) -> str:
@@ -165,16 +173,18 @@ def to_markdown(rows: list[dict], width: int, rc: float, occlusion_free: bool = 
                 "(--all: the occlusion breakdown).", "",
                 "| world | boundaries | " + " | ".join(h for h, _, _ in COMPACT) + " |",
                 "|" + "---|" * (2 + len(COMPACT))]
-        body = [f"| {r['world']} | {r['boundaries']} | " + " | ".join(_cell(r[k], d) for _, k, d in COMPACT) + " |"
+        body = [f"| {r['world']} | {r['boundaries']} | " + " | ".join(_cell(_shown(k, r[k]), d) for _, k, d in COMPACT)
+                + " |"
                 for r in rows]
         return "\n".join(head + body) + "\n"
     head = (f"Noise-free synthetic rooms ({which}), {width}x{width // 2}, Rc = {rc} m. *all*: every room of the "
             "table; then the occlusion-free rooms, the occluded ones, and among those the rooms with at most "
             "one / two or more consecutive walls that no column sees (*hidden 1* / *hidden >= 2*). CE in metres, "
-            "IoU in %.\n\n"
-            "| world | boundaries | rooms | occluded | hidden >= 2 | failed | CE all | 3D IoU all | u2s IoU all | "
-            "CEN % all | 2D IoU all | CE occl.-free | 3D IoU occl.-free | CE occluded | 3D IoU occluded | "
-            "CE hidden 1 | 3D IoU hidden 1 | CE hidden >= 2 | 3D IoU hidden >= 2 | max h err (m) | ms/layout |\n|"
+            "CEN and IoU in %.\n\n"
+            "| world | boundaries | rooms | occluded | hidden >= 2 | failed | CE all | 3D IoU (%) all | "
+            "u2s IoU (%) all | CEN (%) all | 2D IoU (%) all | CE occl.-free | 3D IoU (%) occl.-free | CE occluded | "
+            "3D IoU (%) occluded | CE hidden 1 | 3D IoU (%) hidden 1 | CE hidden >= 2 | 3D IoU (%) hidden >= 2 | "
+            "max h err (m) | ms/layout |\n|"
             + "---|" * 21)
     lines = [head]
 
@@ -183,7 +193,7 @@ def to_markdown(rows: list[dict], width: int, rc: float, occlusion_free: bool = 
     for r in rows:
         lines.append(
             f"| {r['world']} | {r['boundaries']} | {r['rooms']} | {r['occluded']} | {r['hidden2']} | {r['failed']} | "
-            + " | ".join(f(r[k], d) for k, d in (
+            + " | ".join(f(_shown(k, r[k]), d) for k, d in (
                 ("ce_all", 4), ("iou_3d_all", 2), ("iou_3d_u2s_all", 2), ("cen_all", 3), ("iou_2d_all", 2),
                 ("ce_free", 4), ("iou_3d_free", 2), ("ce_occ", 4), ("iou_3d_occ", 2), ("ce_hidden1", 4),
                 ("iou_3d_hidden1", 2), ("ce_hidden2", 4), ("iou_3d_hidden2", 2), ("height_err_max_m", 4),

@@ -46,20 +46,20 @@ def evaluate(rooms: int = 50, max_tilt: float = 30.0, width: int = 512, seed: in
         d = uv_t - uv_p
         d[:, 0] = (d[:, 0] + width / 2) % width - width / 2                   # wrap across the seam
         ok = ok_t & ok_p
-        ce = float(d[ok].norm(dim=-1).mean() / diag * 100) if ok.any() else float("nan")
+        ce = float(d[ok].norm(dim=-1).mean() / diag) if ok.any() else float("nan")   # fraction of the diagonal
         tilt = up_error_deg(up_true, torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
-        rows.append({"room": i, "tilt_deg": tilt, "error_deg": err, "corner_error_pct": ce, "ok": est.ok,
+        rows.append({"room": i, "tilt_deg": tilt, "error_deg": err, "corner_error": ce, "ok": est.ok,
                      "segments": est.n_segments, "vertical_segments": est.n_vertical, "seconds": dt})
         if progress:
-            print(f"room {i:3d}: tilt {tilt:5.1f} deg, error {err:.3f} deg, CE {ce:.4f} %, {dt:.2f} s", flush=True)
+            print(f"room {i:3d}: tilt {tilt:5.1f} deg, error {err:.3f} deg, CE {100 * ce:.4f} %, {dt:.2f} s", flush=True)
     e = np.array([r["error_deg"] for r in rows], float)
-    ce = np.array([r["corner_error_pct"] for r in rows], float)
+    ce = np.array([r["corner_error"] for r in rows], float)
     ok = np.isfinite(e)
     return {"rooms": rows, "n": rooms, "n_ok": int(ok.sum()), "width": width, "max_tilt_deg": max_tilt,
             "median_deg": float(np.median(e[ok])) if ok.any() else float("nan"),
             "p95_deg": float(np.percentile(e[ok], 95)) if ok.any() else float("nan"),
             "max_deg": float(e[ok].max()) if ok.any() else float("nan"),
-            "corner_error_pct_mean": float(np.nanmean(ce)), "corner_error_pct_median": float(np.nanmedian(ce)),
+            "corner_error_mean": float(np.nanmean(ce)), "corner_error_median": float(np.nanmedian(ce)),
             "seconds_per_room": float(np.mean([r["seconds"] for r in rows]))}
 
 
@@ -74,7 +74,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     res = evaluate(a.rooms, a.max_tilt, a.width, a.seed, progress=True)
     print(f"{res['n_ok']}/{res['n']} rooms at {a.width}x{a.width // 2}, tilts up to {a.max_tilt} deg: up-vector error "
           f"median {res['median_deg']:.3f} deg, p95 {res['p95_deg']:.3f} deg, max {res['max_deg']:.3f} deg; corner error "
-          f"from the levelling {res['corner_error_pct_mean']:.4f} % (mean); {res['seconds_per_room']:.2f} s per room")
+          f"from the levelling {100 * res['corner_error_mean']:.4f} % of the diagonal (mean); {res['seconds_per_room']:.2f} s per room")
     if a.out:
         from omnidl.utils.io import atomic_write_json
         atomic_write_json(a.out, res)

@@ -17,7 +17,8 @@ with ``outputs["boundary"] (B, 2, W)`` (radians below the horizon) and ``outputs
 * any :class:`~.pipeline.LayoutOptions` field.
 
 When the batch carries ground-truth corners (``corners_cam``/``num_walls`` from the data engine, or
-``corners_3d``) the scalar scores ``layout_ce``, ``layout_iou_3d``, ... of the batch are returned too.
+``corners_3d``) the scalar scores ``layout_ce``, ``layout_iou_3d``, ... of the batch are returned too
+(:func:`~omnidl.metrics.layout.layout_scores`: CE in metres; CEN and the IoUs as fractions in [0, 1]).
 """
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ def test_tiny_study_reports_every_room():
         ("manhattan", "sub-pixel"), ("manhattan", "rounded"), ("atlanta", "sub-pixel"), ("atlanta", "rounded")]
     for r in rows:
         assert r["rooms"] == 3 and r["failed"] == 0
-        assert math.isfinite(r["ce_all"]) and 0 <= r["iou_3d_all"] <= 100
+        assert math.isfinite(r["ce_all"]) and 0 <= r["iou_3d_all"] <= 1            # fractions (issue 14)
     md = to_markdown(rows, 256, 1.0)
     assert md.count("\n| manhattan |") == 2 and md.count("\n| atlanta |") == 2 and "CE all" in md
 
@@ -47,3 +47,20 @@ def test_cli_prints_compact_thesis_columns_and_all_on_request(capsys):
     assert main(args + ["--all"]) == 0
     table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")]
     assert table[0].count("|") - 1 == 21
+
+
+def test_rows_are_fractions_and_only_the_printed_tables_are_percent():
+    """Issue 14: run_study rows keep omnidl's units (CEN and IoU fractions); the "(%)" columns show them x 100."""
+    row = {"world": "manhattan", "boundaries": "rounded", "rooms": 2, "occluded": 1, "hidden2": 0, "failed": 0,
+           "height_err_max_m": 0.01, "ms_per_layout": 5.0, "ce_all": 0.0123, "cen_all": 0.00045,
+           "iou_3d_all": 0.9876, "iou_3d_u2s_all": 0.99, "iou_2d_all": 0.9912}
+    for tag in ("free", "occ", "hidden1", "hidden2"):
+        row[f"ce_{tag}"], row[f"iou_3d_{tag}"] = 0.0123, 0.9876
+    compact = to_markdown([row], 256, 1.0, all_columns=False).splitlines()
+    head = next(line for line in compact if line.startswith("| world"))
+    assert "CEN (%) ↓" in head and "3D IoU (%) ↑" in head and "2D IoU (%) ↑" in head
+    assert compact[-1] == "| manhattan | rounded | 2 | 0 | 0.0123 | 0.045 | 98.76 | 99.12 | 5.0 |"
+    full = to_markdown([row], 256, 1.0).splitlines()
+    head = next(line for line in full if line.startswith("| world"))
+    assert "3D IoU (%) all" in head and "CEN (%) all" in head and "2D IoU (%) all" in head
+    assert full[-1].startswith("| manhattan | rounded | 2 | 1 | 0 | 0 | 0.0123 | 98.76 | 99.00 | 0.045 | 99.12 | 0.0123 |")

@@ -107,7 +107,7 @@ def test_manhattan_hook_falls_back_to_atlanta_when_the_assumption_fails():
     assert res["layout_ok"] == 1.0
     lay = res["layout"][0]
     assert lay["world"] == "atlanta" and lay["info"]["fallback_from"] == "manhattan"
-    assert "Manhattan assumption" in lay["info"]["fallback_reason"] and res["layout_iou_3d"] > 95
+    assert "Manhattan assumption" in lay["info"]["fallback_reason"] and res["layout_iou_3d"] > 0.95
     no_fb = layouts_from_outputs(out, batch, camera=ring_camera(1.0, W), world="manhattan", fallback=None)
     assert not no_fb[0].ok and no_fb[0].world == "manhattan"
     with pytest.raises(ValueError, match="fallback must be"):

@@ -84,11 +84,13 @@ def test_layout_hook_recovers_engine_room_through_unnamed_camera(index):
     lay = res["layout"][0]
     assert lay["ok"], lay.get("reason")
     assert lay["scale"] == "metric" and len(lay["corners_2d"]) == n
-    # metric scale from the ring of the test camera: corners within a few cm, 3D IoU close to 100 %
-    assert res["layout_ce"] < 0.05 and res["layout_iou_3d"] > 97
+    # metric scale from the ring of the test camera: corners within a few cm, 3D IoU close to 1
+    assert res["layout_ce"] < 0.05 and res["layout_iou_3d"] > 0.97
     # the metric reads the hook's layouts from the outputs and agrees with the hook's own scores
     m = LayoutMetrics()
     m.update({**outputs, "layout": res["layout"]}, batch)
     r = m.compute()
     assert r["layout_fail_rate"] == 0 and r["ce"] == pytest.approx(res["layout_ce"])
     assert r["boundary_px"] == pytest.approx(0.0, abs=1e-3)
+    for k in ("cen", "iou_3d", "iou_3d_u2s", "iou_2d"):          # issue 14: the same fractions in hook and metric
+        assert 0.0 <= r[k] <= 1.0 and r[k] == pytest.approx(res[f"layout_{k}"])
