@@ -5,11 +5,17 @@ Writes into ``<output_dir>``:
 * ``metrics.json`` — mean metrics over the dataset (as the metrics object accumulates them), the number of
   images, the checkpoint, and with ``eval.rotation_deg`` the metrics per rotation angle;
 * ``per_image.csv`` / ``per_image.json`` — one record per image (metrics of that image alone, hook scalars);
-* ``images/<name>.png`` — ``RGB | depth pred | depth GT | semantic pred | semantic GT`` panels;
-* ``predictions/<name>_depth.png`` (16-bit, millimetres) and ``<name>_semantic.png`` (class ids);
-* ``pointclouds/<name>.ply`` — coloured points from the predicted depth through the camera's ``unproject``;
+* ``images/<stem>.png`` — full-resolution titled panels ``input | depth | depth GT | semantics | semantics GT``
+  with a depth colour bar (m) and a class legend; ``inputs/<stem>.jpg`` — the network input;
+* ``predictions/<stem>_depth.png`` (16-bit, millimetres) and ``<stem>_semantic.png`` (class ids);
+* ``pointclouds/<stem>.ply`` — coloured points from the predicted depth through the camera's ``unproject``,
+  gravity-aligned y-up frame;
 * ``rotation.csv`` and ``rotation.png`` — metrics against the rotation angle (with ``eval.rotation_deg``);
 * ``postprocess.jsonl`` — the non-scalar results of the ``postprocess`` hooks per batch.
+
+``<stem>`` is the sample's name made file-name safe and unique (:class:`~omnidl.engine.eval_outputs.OutputNames`);
+``per_image.csv`` has both (``name``, ``output``). ``evaluate.py`` then adds ``report.html``
+(:mod:`omnidl.apps.html_report`).
 
 The configured ``postprocess`` hooks run on every batch before the metrics see it, and their results are
 merged into the outputs (:mod:`omnidl.engine.hooks`; validation during training does the same).
@@ -20,6 +26,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,7 +41,8 @@ from omnidl.utils.io import atomic_write_csv, atomic_write_json
 
 from .build import build_camera, build_dataset, build_metrics, build_model, build_viz, output_dir, pick_device
 from .checkpoint import load_checkpoint, load_model_weights
-from .eval_outputs import append_hook_results, sample_name, save_pictures, scalars, slice_sample, write_rotation
+from .eval_outputs import (OutputNames, append_hook_results, printable, sample_name, sample_source, save_pictures,
+                           scalars, slice_sample, write_rotation)
 from .forward import forward, to_device
 from .hooks import ConfiguredHooks
 from .seed import seed_everything
@@ -100,6 +108,7 @@ class _Evaluation:
     hooks: ConfiguredHooks
     records: list[dict[str, Any]] = field(default_factory=list)
     cameras: dict[tuple[int, int], Any] = field(default_factory=dict)
+    stems: OutputNames = field(default_factory=OutputNames)
 
     def __post_init__(self):
         self.has_labels = self.metrics is not None
@@ -150,13 +159,14 @@ class _Evaluation:
         """Records (per-image metrics + hook scalars), hook results and pictures of one batch."""
         ec = self.cfg.eval
         n = batch["image"].shape[0]
-        names = [sample_name(batch, i, seen + i) for i in range(n)]
+        names = [printable(sample_name(batch, i, seen + i)) for i in range(n)]
+        stems = [self.stems(sample_name(batch, i, seen + i), sample_source(batch, i)) for i in range(n)]
         if self.hooks:
-            append_hook_results(self.out_dir / "postprocess.jsonl", names, hook_res)
+            append_hook_results(self.out_dir / "postprocess.jsonl", stems, hook_res)
         n_img, n_ply = int(ec.save_images), int(ec.save_pointclouds)
         for i in range(n):
             idx = seen + i
-            rec: dict[str, Any] = {"index": idx, "name": names[i]}
+            rec: dict[str, Any] = {"index": idx, "name": names[i], "output": stems[i]}
             if self.has_labels:
                 self.per_image_metrics.reset()
                 self.per_image_metrics.update(slice_sample(merged, i), slice_sample(batch, i))
@@ -166,7 +176,8 @@ class _Evaluation:
             save_img = n_img < 0 or idx < n_img
             save_ply = n_ply < 0 or idx < n_ply
             if save_img or save_ply:
-                save_pictures(self.out_dir, names[i], outputs, batch, i, self.viz, self.camera, save_img, save_ply)
+                save_pictures(self.out_dir, stems[i], outputs, batch, i, self.viz, self.camera, save_img, save_ply,
+                              ec.depth_max)
 
 
 def _model_from_checkpoint(cfg: DictConfig, device: torch.device) -> tuple[DictConfig, torch.nn.Module, str | None]:
@@ -176,11 +187,13 @@ def _model_from_checkpoint(cfg: DictConfig, device: torch.device) -> tuple[DictC
     ckpt = load_checkpoint(ckpt_path, map_location=device) if ckpt_path else None
     if ckpt is not None:
         cfg = _fill_from_checkpoint(cfg, ckpt)
-    model = build_model(cfg).to(device).eval()
-    if ckpt is not None:
+        cfg = _size_from_checkpoint(cfg, ckpt)
+        with _quiet_initialisation():  # "random initialisation" is about to be overwritten by the checkpoint
+            model = build_model(cfg).to(device).eval()
         load_model_weights(model, ckpt, ckpt_path)
-        log.info("loaded %s", ckpt_path)
+        log.info("weights: %s", describe_checkpoint(ckpt_path, ckpt))
     else:
+        model = build_model(cfg).to(device).eval()
         log.warning("no checkpoint given (checkpoint=PATH): evaluating the randomly initialised model")
     return cfg, model, ckpt_path
 
@@ -221,6 +234,51 @@ def _fill_from_checkpoint(cfg: DictConfig, ckpt: dict[str, Any]) -> DictConfig:
                 cfg[key] = OmegaConf.create(saved[key])
                 taken.append(key)
     log.info("no model=... given: using %s from the checkpoint's training config", ", ".join(taken))
+    return cfg
+
+
+def describe_checkpoint(path: str, ckpt: dict[str, Any]) -> str:
+    """One line saying which weights were loaded: the file, its training step and monitored best, the model."""
+    saved = ckpt.get("config") if isinstance(ckpt.get("config"), dict) else {}
+    model = (saved.get("model") or {}).get("name") if isinstance(saved.get("model"), dict) else None
+    parts = [f"step {int(ckpt['step'])}" if isinstance(ckpt.get("step"), int) else "a bare state dict",
+             f"model {model}" if model else None,
+             f"best {float(ckpt['best']):.4g}" if isinstance(ckpt.get("best"), (int, float)) else None]
+    n = sum(int(v.numel()) for v in ckpt["model"].values() if isinstance(v, torch.Tensor))
+    return f"loaded all weights from {path} ({', '.join(p for p in parts if p)}; {n:,} values)"
+
+
+class _DropInitialisationNotes(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "random initialisation" not in record.getMessage()
+
+
+@contextmanager
+def _quiet_initialisation():
+    """Drop the models' "random initialisation" notes while building a model a checkpoint then fills."""
+    filt, logger = _DropInitialisationNotes(), logging.getLogger("omnidl.models._backbone")
+    logger.addFilter(filt)
+    try:
+        yield
+    finally:
+        logger.removeFilter(filt)
+
+
+def _size_from_checkpoint(cfg: DictConfig, ckpt: dict[str, Any]) -> DictConfig:
+    """A data config that leaves its size open (``data=folder``: ``height``/``width`` null) gets the size the
+    checkpoint was trained at (its stored ``data.height``/``data.width``)."""
+    data, saved = cfg.get("data"), ckpt.get("config")
+    if data is None or not isinstance(saved, dict) or not isinstance(saved.get("data"), dict):
+        return cfg
+    keys = [k for k in ("height", "width") if k in data and data.get(k) is None and saved["data"].get(k)]
+    if not keys:
+        return cfg
+    cfg = copy.deepcopy(cfg)
+    with open_dict(cfg):
+        for k in keys:
+            cfg.data[k] = int(saved["data"][k])
+    log.info("input size %sx%s: the checkpoint's training size (set data.height/data.width to change it)",
+             cfg.data.get("width"), cfg.data.get("height"))
     return cfg
 
 
