@@ -24,6 +24,6 @@ class ImageFolder(PairedPanoramas):
         if not files:
             raise FileNotFoundError(f"image folder {root_p} holds no images with extensions {sorted(exts)}"
                                     f"{'' if recursive else ' (recursive=false)'}")
-        samples = [PanoramaFiles(name=str(p.relative_to(root_p).with_suffix("")).replace("/", "_"), image=p)
+        samples = [PanoramaFiles(name=p.relative_to(root_p).with_suffix("").as_posix(), image=p)  # x/y: evaluation makes it file-safe
                    for p in files]
         super().__init__(samples, height, width, None, None, f"image folder {root_p}")
