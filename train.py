@@ -2,6 +2,8 @@
 
 Under ``torchrun --nproc_per_node=N train.py ...`` every rank shares one Hydra run dir.
 """
+import sys
+
 import hydra
 from omegaconf import DictConfig
 
@@ -18,7 +20,11 @@ def main(cfg: DictConfig) -> float | None:
         from omnidl.search import run_search_from_config
         return run_search_from_config(cfg).best_objective
     from omnidl.engine import train
-    summary = train(cfg)
+    from omnidl.engine.interrupt import TrainingInterrupted
+    try:
+        summary = train(cfg)
+    except TrainingInterrupted as e:  # Ctrl-C / SIGTERM: last.pt written, the resume command logged
+        sys.exit(e.exit_code)
     return summary.get("best")  # the optimised value, for Hydra sweepers
 
 

@@ -5,6 +5,12 @@ Layout of a checkpoint (``torch.save`` dict):
 ``rng`` (:func:`omnidl.engine.seed.rng_state`), ``step`` (optimiser steps done), ``epoch`` (current epoch),
 ``batch_in_epoch`` (batches of ``epoch`` already consumed: the sampler position), ``best`` (monitored value),
 ``bad_validations`` (early-stopping counter), ``config`` (the resolved config as a plain dict), ``version``.
+``best.pt`` is weights-only by default: ``model`` and the position/best entries, without ``optimizer``,
+``scheduler``, ``scaler`` and ``rng`` (``trainer.save_optimizer=true`` keeps them).
+
+Checkpoints are read with ``torch.load(weights_only=True)``: a ``.pt`` file can hold only tensors, numbers,
+strings and containers of them (plus the NumPy RNG arrays of older omnidl checkpoints), never code, so a
+checkpoint downloaded from the internet cannot run anything when loaded.
 """
 from __future__ import annotations
 
@@ -13,7 +19,7 @@ from typing import Any
 
 import torch
 
-from omnidl.utils.io import atomic_torch_save
+from omnidl.utils.io import atomic_torch_save, safe_torch_load
 
 CHECKPOINT_VERSION = 1
 
@@ -29,12 +35,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
-    try:
-        obj = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as e:  # truncated or not a torch file
-        raise RuntimeError(f"could not read checkpoint {path}: {e}") from e
+    obj = safe_torch_load(path, map_location)
     if not isinstance(obj, dict):
         raise RuntimeError(f"checkpoint {path}: expected a dict, got {type(obj).__name__}")
+    if not obj:
+        raise RuntimeError(f"checkpoint {path}: an empty dict, expected a 'model' state dict")
     if "model" not in obj:
         if "state_dict" in obj and isinstance(obj["state_dict"], dict):
             return {"model": obj["state_dict"]}
@@ -48,9 +53,16 @@ def load_model_weights(model: torch.nn.Module, ckpt: dict[str, Any], path: str |
                        strict: bool = True) -> None:
     """Load ``ckpt["model"]`` into ``model`` with an error that lists missing/unexpected keys."""
     sd = ckpt["model"]
+    if not isinstance(sd, dict) or not all(isinstance(k, str) for k in sd):
+        raise RuntimeError(f"checkpoint {path}: 'model' is a {type(sd).__name__}, expected a state dict "
+                           "(parameter name -> tensor)")
     if any(k.startswith("module.") for k in sd):
         sd = {k.removeprefix("module."): v for k, v in sd.items()}
-    missing, unexpected = model.load_state_dict(sd, strict=False)
+    try:
+        missing, unexpected = model.load_state_dict(sd, strict=False)
+    except RuntimeError as e:  # shape mismatches
+        raise RuntimeError(f"checkpoint {path} does not fit the model ({type(model).__name__}): {e}; was it trained "
+                           "with another model config?") from e
     if strict and (missing or unexpected):
         raise RuntimeError(f"checkpoint {path} does not fit the model ({type(model).__name__}): "
                            f"missing keys {missing[:8]}{'...' if len(missing) > 8 else ''}, "

@@ -9,10 +9,14 @@ Model, data, loss, metrics, camera and viz nodes stay free-form (each is a ``_ta
 """
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
 
 
 @dataclass
@@ -62,12 +66,16 @@ class TrainerConfig:
     log_every_steps: int = 10
     image_every_steps: int = 0         # TensorBoard image grids on validation (0: at every validation)
     val_every_steps: int = 0           # validate every N steps (0: at the end of every epoch)
+    val_every_minutes: float = 0.0     # ...and when this much wall time has passed since the last one (0: off)
     val_max_batches: int = -1          # -1: the whole validation set
     ckpt_every_steps: int = 0          # also write last.pt every N steps (0: only at validation/epoch end)
+    ckpt_every_minutes: float = 0.0    # ...and when this much wall time has passed since the last write (0: off)
+    save_optimizer: bool = False       # keep optimiser/RNG state in best.pt too (last.pt always has it)
     monitor: str = "val/loss"          # metric for best.pt and early stopping
     monitor_mode: str = "min"          # min | max
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
-    resume: bool = False               # continue from <output_dir>/checkpoints/last.pt if present
+    resume: bool = False               # continue from <output_dir>/checkpoints/last.pt (needs hydra.run.dir=<run>)
+    resume_override: bool = False      # resume although optim/sched/data/... settings differ from the checkpoint
     random_rotation_deg: float = 0.0   # train-time rotation about a random horizontal axis, U(-a, a) ("-r" variants)
     skip_nonfinite: bool = True        # skip (with a warning) batches with NaN/Inf inputs or loss
     max_skipped: int = 20              # ...but fail after this many consecutive skips
@@ -120,6 +128,7 @@ class TrainConfig:
     # loaded by an optional default when the search has written it>} (see configs/experiment/*-B*.yaml)
     loss_search: Any = None
     name: str = "run"                  # free label (experiments set it)
+    expected: Any = None               # expected final metrics of the default run (omnidl.engine.expected)
     notes: Any = None
 
 
@@ -131,13 +140,26 @@ class EvaluateConfig(TrainConfig):
 
 
 _REGISTERED = False
+_RUN_STAMP: dict[str, str] = {}
+
+
+def run_stamp(pattern: str = "%H-%M-%S") -> str:
+    """``${run_stamp:%H-%M-%S}`` in a config: the process start time with ``pattern``, then milliseconds and
+    the process id (``23-59-59.123_4567``), so two commands started in the same second never share a run dir.
+    The same value for the whole process (every resolution of the run dir agrees)."""
+    if pattern not in _RUN_STAMP:
+        now = datetime.now()
+        _RUN_STAMP[pattern] = f"{now.strftime(pattern)}.{now.microsecond // 1000:03d}_{os.getpid()}"
+    return _RUN_STAMP[pattern]
 
 
 def register_configs() -> None:
-    """Put the schemas into Hydra's ConfigStore (idempotent)."""
+    """Put the schemas into Hydra's ConfigStore and register the ``run_stamp`` resolver (idempotent)."""
     global _REGISTERED
     if _REGISTERED:
         return
+    if not OmegaConf.has_resolver("run_stamp"):
+        OmegaConf.register_new_resolver("run_stamp", run_stamp)
     cs = ConfigStore.instance()
     cs.store(name="schema_train", node=TrainConfig)
     cs.store(name="schema_evaluate", node=EvaluateConfig)
@@ -159,3 +181,34 @@ def missing_search_result(cfg) -> str | None:
             f"training with the experiment's fallback weights loss.alpha_* = "
             f"{[loss.get(k) for k in ('alpha_semantic', 'alpha_depth', 'alpha_margin', 'alpha_object')]}. "
             f"Run python train.py +search={name} first to train with the searched weights.")
+
+
+def check_trainer_config(tc: Any, optim: Any = None) -> None:
+    """Refuse trainer/optim values that would crash later with an unclear error (or train on garbage):
+    ``ValueError`` naming the key, the value and what is expected."""
+    def bad(key: str, value: Any, expected: str) -> ValueError:
+        return ValueError(f"trainer.{key}={value!r}: expected {expected}")
+
+    if int(tc.batch_size) < 1:
+        raise bad("batch_size", tc.batch_size, "a positive number of samples per batch (e.g. 4)")
+    if int(tc.max_steps) == 0 or int(tc.max_steps) < -1:
+        raise bad("max_steps", tc.max_steps, "a positive number of optimiser steps, or -1 to train "
+                  "trainer.max_epochs epochs")
+    if int(tc.max_steps) == -1 and int(tc.max_epochs) < 1:
+        raise bad("max_epochs", tc.max_epochs, "at least 1 (or set trainer.max_steps > 0)")
+    for key in ("num_workers", "val_every_steps", "ckpt_every_steps", "max_skipped", "image_every_steps"):
+        if int(tc[key]) < 0:
+            raise bad(key, tc[key], "0 or more")
+    if int(tc.log_every_steps) < 1:
+        raise bad("log_every_steps", tc.log_every_steps, "1 or more")
+    for key in ("grad_clip", "val_every_minutes", "ckpt_every_minutes", "random_rotation_deg"):
+        v = float(tc[key])
+        if not math.isfinite(v) or v < 0:
+            raise bad(key, tc[key], "a finite number >= 0 (0: off)")
+    if str(tc.monitor_mode) not in ("min", "max"):
+        raise bad("monitor_mode", tc.monitor_mode, "'min' or 'max'")
+    if optim is not None:
+        for key in ("lr", "weight_decay"):
+            v = float(optim[key])
+            if not math.isfinite(v) or v < 0:
+                raise ValueError(f"optim.{key}={optim[key]!r}: expected a finite number >= 0")

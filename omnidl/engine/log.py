@@ -1,7 +1,7 @@
 """Training logs (rank 0 only): TensorBoard scalars and images under ``tb/``, ``train_log.jsonl``, the progress bar.
 
-``train_log.jsonl`` holds one JSON record per logged step: ``{"step", "epoch", "loss", "lr", "loss_<term>"...}``
-(a resumed run appends; a re-run step's later record wins). TensorBoard gets ``train/loss``, ``train/lr``,
+``train_log.jsonl`` holds one JSON record per logged step: ``{"step", "epoch", "loss", "lr", "loss_<term>"...}``;
+a resumed run first drops the records after the step it resumes from, then appends. TensorBoard gets ``train/loss``, ``train/lr``,
 ``train/loss_<term>``, every validation scalar (``val/...``) and the ``val/prediction_vs_truth`` image.
 """
 from __future__ import annotations
@@ -13,6 +13,8 @@ from typing import Any
 
 import torch
 
+from omnidl.utils.io import atomic_write_text
+
 log = logging.getLogger("omnidl.engine")
 
 
@@ -21,6 +23,25 @@ class JsonlLog:
 
     def __init__(self, path: Path | None):
         self.path = path
+
+    def truncate(self, step: int) -> int:
+        """Drop the records after ``step`` (a resumed run redoes those steps); returns how many were dropped.
+        Unreadable lines (a kill mid-line) are dropped too."""
+        if self.path is None or not self.path.is_file():
+            return 0
+        keep, dropped = [], 0
+        for line in self.path.read_text().splitlines():
+            try:
+                ok = int(json.loads(line)["step"]) <= step
+            except (ValueError, KeyError, TypeError):
+                ok = False
+            if ok:
+                keep.append(line)
+            else:
+                dropped += 1
+        if dropped:
+            atomic_write_text(self.path, "".join(x + "\n" for x in keep))
+        return dropped
 
     def write(self, record: dict[str, Any]) -> None:
         if self.path is None:
@@ -49,6 +70,9 @@ class TrainLogger:
             from torch.utils.tensorboard import SummaryWriter
             self.writer = SummaryWriter(log_dir=str(out_dir / "tb"), purge_step=start_step if start_step > 0 else None)
         self.jsonl = JsonlLog(out_dir / "train_log.jsonl" if main else None)
+        if dropped := self.jsonl.truncate(start_step):
+            log.info("train_log.jsonl: dropped %d records after step %d (the resumed run redoes them)", dropped,
+                     start_step)
         self.start_step = start_step
         self.bar = None
         self._running, self._running_n = 0.0, 0

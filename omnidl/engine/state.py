@@ -5,11 +5,19 @@
 the early-stopping counter. :class:`Checkpointer` writes ``<output_dir>/checkpoints/{last,best}.pt``
 (see :mod:`omnidl.engine.checkpoint` for the file layout) with every RNG, and restores all of it, so a
 resumed run continues the loss curve bit for bit.
+
+Write order: ``best.pt`` before ``last.pt``. ``last.pt`` records the best value and step, so it must never
+be on disk before the ``best.pt`` it describes: a kill between the two writes leaves the previous ``last.pt``
+(which describes the previous, still present ``best.pt``), and the resumed run redoes that validation.
+On resume a missing ``best.pt`` is repaired (rewritten from ``last.pt`` when they are the same step, else
+the best is forgotten with a warning so the next validation writes one).
 """
 from __future__ import annotations
 
 import logging
 import math
+import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,6 +26,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import distributed as ddp
+from omnidl.utils.io import remove_stale_temps
+
 from .checkpoint import load_checkpoint, load_model_weights, save_checkpoint
 from .seed import rng_state, set_rng_state
 from .step import Optimisation
@@ -73,15 +83,36 @@ class Checkpointer:
     """Writes and restores checkpoints of one run (rank 0 writes; every rank's RNG is gathered).
 
     ``raw_model``: the model without its DDP wrapper (its state dict has no ``module.`` prefix).
+    ``save_optimizer``: also keep the optimiser/scheduler/RNG state in ``best.pt`` (``last.pt`` always has it).
     """
 
+    #: keys only a resumable checkpoint needs (left out of a weights-only best.pt)
+    RESUME_KEYS = ("optimizer", "scheduler", "scaler", "rng")
+
     def __init__(self, ckpt_dir: Path, cfg: DictConfig, raw_model: torch.nn.Module, opt: Optimisation,
-                 dist: ddp.DistInfo):
+                 dist: ddp.DistInfo, save_optimizer: bool = False):
         self.dir = Path(ckpt_dir)
         self.cfg = cfg
         self.raw_model = raw_model
         self.opt = opt
         self.dist = dist
+        self.save_optimizer = save_optimizer
+        if dist.is_main:  # temp files a kill -9 left behind (atomic writes never leave a half file as last/best)
+            for p in remove_stale_temps(self.dir, ["last.pt", "best.pt"]):
+                log.info("removed %s, left by an interrupted checkpoint write", p)
+            for p in remove_stale_temps(self.dir.parent, ["metrics.json", "train_log.jsonl"]):
+                log.info("removed %s, left by an interrupted write", p)
+            self._check_writable()
+
+    def _check_writable(self) -> None:
+        """Fail at start-up, not after the first training steps, when checkpoints cannot be written."""
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            fd, probe = tempfile.mkstemp(prefix=".write-test.", suffix=".tmp", dir=self.dir)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as e:
+            raise OSError(e.errno, f"cannot write checkpoints to {self.dir}: {e.strerror or e}") from e
 
     @property
     def last(self) -> Path:
@@ -104,12 +135,58 @@ class Checkpointer:
                 "rng": rng, **state.as_dict(), "config": OmegaConf.to_container(self.cfg, resolve=False)}
 
     def save(self, state: TrainState, best: bool = False) -> None:
-        """Write ``last.pt`` (and ``best.pt`` when ``best``) on rank 0; every rank must call it (RNG gather)."""
+        """Write ``best.pt`` (when ``best``) and then ``last.pt`` on rank 0; every rank must call it (RNG gather).
+
+        ``best.pt`` first: ``last.pt`` says which step is best, so it must not exist before that ``best.pt``."""
         ck = self.state_dict(state)
         if self.dist.is_main:
-            save_checkpoint(self.last, ck)
             if best:
-                save_checkpoint(self.best, ck)
+                save_checkpoint(self.best, self.best_dict(ck))
+            save_checkpoint(self.last, ck)
+
+    def finish(self, state: TrainState) -> None:
+        """At the normal end of a run (every rank calls it): unless ``save_optimizer``, rewrite ``last.pt``
+        without the optimiser/RNG state (a finished run needs only its weights; that is 2/3 of an Adam
+        checkpoint). When the last step is also the best one, ``last.pt`` becomes a hard link to ``best.pt``
+        (the same bytes on disk once; a copy where links are not supported)."""
+        if self.save_optimizer:
+            return
+        ck = self.best_dict(self.state_dict(state))
+        if not self.dist.is_main:
+            return
+        if state.best_step == state.step and self.best.is_file():
+            tmp = self.dir / f".last.pt.{os.getpid()}.link.tmp"
+            try:
+                tmp.unlink(missing_ok=True)
+                os.link(self.best, tmp)
+                os.replace(tmp, self.last)
+                return
+            except OSError:
+                tmp.unlink(missing_ok=True)
+        save_checkpoint(self.last, ck)
+
+    def best_dict(self, ck: dict[str, Any]) -> dict[str, Any]:
+        """``ck`` as written to ``best.pt``: weights-only unless ``save_optimizer``."""
+        if self.save_optimizer:
+            return ck
+        return {k: v for k, v in ck.items() if k not in self.RESUME_KEYS}
+
+    def repair_best(self, state: TrainState, ck: dict[str, Any]) -> None:
+        """After resuming from ``last.pt``: make sure the ``best.pt`` it describes exists.
+
+        Same step as ``last.pt``: rewrite ``best.pt`` from it. An older best whose file is gone (deleted by
+        hand; omnidl's write order never loses it): forget it with a warning, so the next validation that
+        gives a number writes a new ``best.pt``."""
+        if state.best is None or state.best_step < 0 or self.best.is_file() or not self.dist.is_main:
+            return
+        if state.best_step == state.step:
+            save_checkpoint(self.best, self.best_dict(ck))
+            log.warning("%s was missing; rewrote it from %s (both are step %d)", self.best, self.last, state.step)
+            return
+        log.warning("%s is missing although %s records its best %s at step %d; that checkpoint cannot be "
+                    "recovered, so the best is reset and the next validation writes a new best.pt",
+                    self.best, self.last, state.best, state.best_step)
+        state.best, state.best_step, state.bad_validations = None, -1, 0
 
     def resume_path(self, resume: bool) -> str | None:
         """``cfg.checkpoint`` if given, else ``last.pt`` when ``trainer.resume`` and it exists."""
@@ -120,13 +197,25 @@ class Checkpointer:
             log.info("trainer.resume=true but %s does not exist yet: starting from scratch", self.last)
         return path
 
-    def restore(self, path: str | None, device: torch.device) -> TrainState:
-        """Load ``path`` (weights only for a bare state dict; everything for a full checkpoint)."""
+    def restore(self, path: str | None, device: torch.device, ck: dict[str, Any] | None = None,
+                total_steps: int | None = None) -> TrainState:
+        """Load ``path`` (weights only for a bare state dict or a weights-only ``best.pt``; everything for a
+        full checkpoint). ``ck``: the already loaded checkpoint of ``path``. The weights-only ``last.pt`` of a
+        finished run restores its position (nothing is left to train; ``total_steps`` checks that)."""
         state = TrainState()
         if not path:
             return state
-        ck = load_checkpoint(path, map_location=device)
+        ck = load_checkpoint(path, map_location=device) if ck is None else ck
         load_model_weights(self.raw_model, ck, path)
+        own_last = Path(path).resolve() == self.last.resolve()
+        if "optimizer" not in ck and own_last and "step" in ck:
+            state = TrainState.from_checkpoint(ck)
+            if total_steps is not None and state.step < total_steps:
+                raise ValueError(f"{path} is the weights-only last.pt of a finished run (step {state.step}); it has "
+                                 f"no optimiser state to continue to step {total_steps}. Start a new run from its "
+                                 f"weights with checkpoint={path} in another run folder (or train with "
+                                 "trainer.save_optimizer=true to keep that state)")
+            return state
         if "optimizer" in ck:
             self.opt.optimizer.load_state_dict(ck["optimizer"])
             self.opt.scheduler.load_state_dict(ck["scheduler"])
@@ -138,6 +227,8 @@ class Checkpointer:
                 if isinstance(rng, list):
                     rng = rng[self.dist.rank] if self.dist.rank < len(rng) else rng[0]
                 set_rng_state(rng)
+            if own_last:
+                self.repair_best(state, ck)
         if self.dist.is_main:
             log.info("resumed from %s at step %d (epoch %d, batch %d)", path, state.step, state.epoch,
                      state.batch_in_epoch)

@@ -40,7 +40,14 @@ class SkipGuard:
         self.in_row = 0
 
     def skip(self, why: str, batch: dict[str, Any] | None) -> None:
-        """Record one skipped batch (``None``: nothing readable, no message); raises when not allowed."""
+        """Record one skipped batch; raises when not allowed. ``None``: every sample of the batch was unreadable
+        (each already named in a warning by :class:`~omnidl.data.robust.SkipCorrupt`); such batches count
+        towards ``max_skipped`` too, so a dataset whose samples are all corrupt stops instead of looping."""
+        if batch is None:
+            if self.in_row + 1 > self.max_skipped:
+                raise RuntimeError(f"{self.in_row + 1} batches in a row skipped, the last ones because every sample "
+                                   "in them was unreadable (see the warnings above for the files); "
+                                   f"trainer.max_skipped={self.max_skipped}: check the data")
         if batch is not None:
             files = batch_files(batch)
             if not self.skip_nonfinite:

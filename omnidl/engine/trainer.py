@@ -6,21 +6,27 @@ What one run does (all side effects on rank 0 only):
 * builds model / datasets / loss / metrics / visualiser from the config, optimiser and per-step LR schedule;
 * trains for ``trainer.max_steps`` optimiser steps (or ``trainer.max_epochs`` epochs), with optional AMP,
   gradient clipping and skipping of batches with non-finite inputs or loss (:mod:`.step`);
-* validates every epoch (or every ``trainer.val_every_steps``; :mod:`.validation`, running the configured
-  ``postprocess`` hooks before the metrics), keeps ``checkpoints/last.pt`` and ``checkpoints/best.pt``
-  (by ``trainer.monitor``; :mod:`.state`), stops early after ``trainer.early_stopping.patience``
-  validations without improvement;
+* validates every epoch (or every ``trainer.val_every_steps``, and every ``trainer.val_every_minutes`` of wall
+  time; :mod:`.validation`, running the configured ``postprocess`` hooks before the metrics), keeps
+  ``checkpoints/last.pt`` (also every ``trainer.ckpt_every_steps`` / ``ckpt_every_minutes``) and a weights-only
+  ``checkpoints/best.pt`` (by ``trainer.monitor``; :mod:`.state`), stops early after
+  ``trainer.early_stopping.patience`` validations without improvement;
+* on Ctrl-C / SIGTERM finishes the step, writes ``last.pt`` and raises
+  :class:`~omnidl.engine.interrupt.TrainingInterrupted` with the exact resume command (:mod:`.interrupt`);
 * logs TensorBoard scalars and image grids under ``tb/``, every logged training step in ``train_log.jsonl``
   (:mod:`.log`);
 * writes ``metrics.json`` and returns the same dict.
 
 Resume (``trainer.resume=true`` or ``checkpoint=PATH``) restores model, optimiser, scheduler, AMP scaler,
-every RNG and the sampler position, so the loss curve continues exactly as if never interrupted.
+every RNG and the sampler position, so the loss curve continues exactly as if never interrupted; other
+optimisation/data settings than the checkpoint's are an error unless ``trainer.resume_override=true``
+(:mod:`.resume`), and ``train_log.jsonl`` is cut back to the resumed step.
 """
 from __future__ import annotations
 
 import logging
 import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,10 +42,13 @@ from omnidl.utils.io import atomic_write_json
 
 from . import distributed as ddp
 from .build import build_dataset, build_loss, build_metrics, build_model, build_viz, output_dir, pick_device
-from .config import missing_search_result
+from .checkpoint import load_checkpoint
+from .config import check_trainer_config, missing_search_result
 from .hooks import ConfiguredHooks
+from .interrupt import StopRequest, TrainingInterrupted
 from .log import TrainLogger
 from .optim import build_optimizer, build_scheduler
+from .resume import apply_new_settings, check_resume_dir, check_resume_settings, resume_command
 from .sampler import ResumableDistributedSampler
 from .seed import seed_everything
 from .state import Checkpointer, TrainState, is_better
@@ -56,6 +65,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """
     t0 = time.time()
     tc = cfg.trainer
+    check_trainer_config(tc, cfg.optim)
     out_dir = Path(output_dir(cfg))
     seed_everything(int(tc.seed), int(tc.num_threads), bool(tc.deterministic))
     device = pick_device(str(tc.device), int(os.environ.get("LOCAL_RANK", 0)))
@@ -76,8 +86,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     optimizer = build_optimizer(model.parameters(), cfg.optim)
     opt = Optimisation(model, optimizer, build_scheduler(optimizer, cfg.sched, total_steps),
                        make_grad_scaler(bool(tc.amp), device), float(tc.grad_clip))
-    ckpt = Checkpointer(out_dir / "checkpoints", cfg, raw_model, opt, dist)
-    state = ckpt.restore(ckpt.resume_path(bool(tc.resume)), device)
+    ckpt = Checkpointer(out_dir / "checkpoints", cfg, raw_model, opt, dist, bool(tc.save_optimizer))
+    state = _resume(cfg, ckpt, opt, device, dist, total_steps)
     logger = TrainLogger(out_dir, dist.is_main, bool(tc.tensorboard), bool(tc.progress), int(tc.log_every_steps),
                          state.step, total_steps)
     if dist.is_main:
@@ -87,19 +97,26 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     is_better(0.0, None, str(tc.monitor_mode))  # validates the mode string
     val_loader = None
     if val_ds is not None:
+        val_gen = torch.Generator()  # its own seed generator: validation must not draw from the global RNG,
+        val_gen.manual_seed(int(tc.seed))  # or a wall-time-triggered validation would change the training
         val_loader = DataLoader(val_ds, batch_size=bs, shuffle=False, num_workers=int(tc.num_workers),
-                                collate_fn=collate_samples)
+                                collate_fn=collate_samples, generator=val_gen)
     loop = _Loop(cfg, device, dist, opt, loss_fn, metrics, viz, ConfiguredHooks.from_config(cfg), val_loader,
                  ckpt, logger, train_ds, sampler, steps_per_epoch, total_steps)
     logger.start()
     stopped_early = loop.run(state)
     logger.close()
+    ckpt.finish(state)
     summary = {"monitor": str(tc.monitor), "best": state.best, "best_step": state.best_step,
                "final": state.last_val, "step": state.step, "epoch": state.epoch,
                "stopped_early": bool(stopped_early), "wall_time_s": time.time() - t0, "output_dir": str(out_dir),
-               "checkpoint_best": str(ckpt.best), "checkpoint_last": str(ckpt.last)}
+               "checkpoint_best": str(ckpt.best) if ckpt.best.is_file() else None,
+               "checkpoint_last": str(ckpt.last) if ckpt.last.is_file() else None}
     if dist.is_main:
         atomic_write_json(out_dir / "metrics.json", summary)
+        from .expected import summary_lines  # (lazy: the module is also a command, python -m ...expected)
+        for line in summary_lines(state.last_val, cfg):
+            log.info("%s", line)
         log.info("done: %d steps in %.1f s; best %s = %s (step %d); outputs in %s", state.step, summary["wall_time_s"],
                  tc.monitor, state.best, state.best_step, out_dir)
     ddp.cleanup()
@@ -126,12 +143,29 @@ class _Loop:
     steps_per_epoch: int
     total_steps: int
     last_image_step: int = -10**9
+    last_val_time: float = 0.0
+    last_ckpt_time: float = 0.0
 
     def run(self, state: TrainState) -> bool:
-        """Train until ``total_steps`` or early stopping (then True)."""
+        """Train until ``total_steps`` or early stopping (then True); Ctrl-C/SIGTERM: :meth:`_interrupt`."""
+        with StopRequest() as request:
+            return self._run(state, request)
+
+    def _due(self, every_steps: int, every_minutes: float, since: float, step: int) -> bool:
+        """Whether a periodic validation/checkpoint is due at ``step`` (by steps, or by wall time since ``since``;
+        rank 0 decides the wall-time part for all ranks)."""
+        if every_steps > 0 and step % every_steps == 0:
+            return True
+        if every_minutes <= 0:
+            return False
+        due = time.monotonic() - since >= every_minutes * 60
+        return bool(ddp.broadcast_object(due)) if self.dist.enabled else due
+
+    def _run(self, state: TrainState, request: StopRequest) -> bool:
         tc = self.cfg.trainer
         guard = SkipGuard(bool(tc.skip_nonfinite), int(tc.max_skipped))
         self.opt.model.train()
+        self.last_val_time = self.last_ckpt_time = time.monotonic()
         stop, stopped_early = state.step >= self.total_steps, False
         while not stop:
             epoch_done = True
@@ -139,27 +173,62 @@ class _Loop:
                 state.batch_in_epoch += 1
                 done = train_step(self.opt, batch, self.loss_fn, self.device, bool(tc.amp), self.dist, guard)
                 if done is None:
+                    if self._stop_requested(request):
+                        self._interrupt(state, request, saved=False)
                     continue
                 state.step += 1
                 self.logger.train_step(state.step, state.epoch, done[0], done[1],
                                        self.opt.optimizer.param_groups[0]["lr"])
-                vstep = int(tc.val_every_steps)
-                if (vstep > 0 and state.step % vstep == 0) or state.step >= self.total_steps:
+                saved = True
+                if (self._due(int(tc.val_every_steps), float(tc.val_every_minutes), self.last_val_time, state.step)
+                        or state.step >= self.total_steps):
                     stop = self.validate_and_checkpoint(state)
-                elif int(tc.ckpt_every_steps) > 0 and state.step % int(tc.ckpt_every_steps) == 0:
-                    self.ckpt.save(state)
+                elif self._due(int(tc.ckpt_every_steps), float(tc.ckpt_every_minutes), self.last_ckpt_time,
+                               state.step):
+                    self.save(state)
+                else:
+                    saved = False
                 if stop or state.step >= self.total_steps:
                     stopped_early = stop and state.step < self.total_steps
                     stop = True
                     epoch_done = state.batch_in_epoch >= self.steps_per_epoch
                     break
+                if self._stop_requested(request):
+                    self._interrupt(state, request, saved)
             if epoch_done:
                 state.epoch += 1
                 state.batch_in_epoch = 0
                 if not stop and int(tc.val_every_steps) <= 0:
                     stop = self.validate_and_checkpoint(state)
                     stopped_early = stop
+                if not stop and self._stop_requested(request):
+                    self._interrupt(state, request, saved=int(tc.val_every_steps) <= 0)
         return stopped_early
+
+    def _stop_requested(self, request: StopRequest) -> bool:
+        """A signal reached this process (under DDP: any rank; all ranks then stop at the same step)."""
+        if not self.dist.enabled:
+            return request.requested
+        if ddp.all_reduce_sum(torch.tensor([float(request.requested)])).item() > 0:
+            request.signum = request.signum or signal.SIGTERM
+            return True
+        return False
+
+    def save(self, state: TrainState, best: bool = False) -> None:
+        self.ckpt.save(state, best=best)
+        self.last_ckpt_time = time.monotonic()
+
+    def _interrupt(self, state: TrainState, request: StopRequest, saved: bool) -> None:
+        """Write ``last.pt`` (unless this step already did) and raise :class:`TrainingInterrupted`."""
+        if not saved:
+            self.save(state)
+        out_dir = Path(output_dir(self.cfg))
+        command = resume_command(self.cfg, out_dir)
+        if self.dist.is_main:
+            self.logger.close()
+            log.warning("stopped by %s after step %d: %s written. Resume with:\n  %s",
+                        signal.Signals(request.signum).name, state.step, self.ckpt.last, command)
+        raise TrainingInterrupted(request.signum, state.step, str(self.ckpt.last), command)
 
     def _epoch_loader(self, state: TrainState) -> DataLoader:
         """The training loader of ``state.epoch``, starting at ``state.batch_in_epoch`` (its own seeded RNG)."""
@@ -195,9 +264,32 @@ class _Loop:
                 log.info("early stopping: %s did not improve for %d validations (best %.4g at step %d)",
                          tc.monitor, state.bad_validations, state.best, state.best_step)
         stop = bool(ddp.broadcast_object(stop))
-        self.ckpt.save(state, best=improved or self.val_loader is None)
+        self.save(state, best=improved or self.val_loader is None)
+        self.last_val_time = time.monotonic()
         ddp.barrier()
         return stop
+
+
+def _resume(cfg: DictConfig, ckpt: Checkpointer, opt: Optimisation, device: torch.device, dist: ddp.DistInfo,
+            total_steps: int) -> TrainState:
+    """The state to start from: fresh, or restored from ``checkpoint=`` / ``last.pt`` (``trainer.resume``) after
+    checking the run folder and the settings (:mod:`.resume`)."""
+    tc = cfg.trainer
+    check_resume_dir(cfg, ckpt.last)
+    path = ckpt.resume_path(bool(tc.resume))
+    if not path:
+        return TrainState()
+    ck = load_checkpoint(path, map_location=device)
+    diffs = check_resume_settings(ck, cfg, path) if "optimizer" in ck else []
+    state = ckpt.restore(path, device, ck, total_steps)
+    if diffs:
+        if dist.is_main:
+            log.warning("trainer.resume_override=true: continuing %s with changed settings (not an exact "
+                        "continuation):\n  %s", path, "\n  ".join(diffs))
+        apply_new_settings(opt.optimizer, opt.scheduler, cfg, state.step, total_steps)
+        old_bs = int(((ck.get("config") or {}).get("trainer") or {}).get("batch_size", tc.batch_size))
+        state.batch_in_epoch = state.batch_in_epoch * old_bs // int(tc.batch_size)  # same samples consumed
+    return state
 
 
 def _model(cfg: DictConfig, device: torch.device, dist: ddp.DistInfo) -> tuple[torch.nn.Module, torch.nn.Module]:

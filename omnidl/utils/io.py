@@ -1,34 +1,117 @@
 """Atomic file writes: every checkpoint and result file goes through these (temp file + rename).
 
+A write goes to ``.<name>.<random>.tmp`` in the target's folder, is flushed and fsynced, gets the permissions
+a plain ``open()`` would give (``0o666`` minus the process umask; ``mkstemp`` alone gives 0600), and is renamed
+onto the target; the folder is then fsynced (best effort). A failed write removes its temp file and leaves the
+old target untouched; a full disk is an ``OSError`` naming the file and the free space. Temp files orphaned by
+a ``kill -9`` are removed by :func:`remove_stale_temps`.
+
 Also the two text formats every result file shares: JSON with numpy/torch values (:func:`json_default`)
 and CSV from row dicts (:func:`rows_to_csv`).
 """
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Callable
 
+#: errno values that mean "the disk (or a quota / file-size limit) is full"
+_FULL = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
+
+
+def current_umask() -> int:
+    """The process umask (read from ``/proc/self/status`` when possible, which does not change it)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # no getter elsewhere: set and restore
+    os.umask(mask)
+    return mask
+
+
+def _disk_full_error(path: Path, exc: BaseException) -> OSError | None:
+    """An ``OSError`` naming ``path`` when ``exc`` means the disk or a size limit is full, else None."""
+    code = getattr(exc, "errno", None)
+    text = str(exc)
+    if code not in _FULL and not any(s in text for s in ("No space left", "File too large", "iostream error",
+                                                         "unexpected pos", "file write failed")):
+        return None
+    try:
+        free = f"{shutil.disk_usage(path.parent).free / 2**20:.0f} MB free"
+    except OSError:
+        free = "free space unknown"
+    err = OSError(code if code in _FULL else errno.ENOSPC,
+                  f"could not write {path}: the disk is full or a file-size/quota limit was reached ({free}; "
+                  f"{type(exc).__name__}: {text}); the previous {path.name}, if any, is unchanged")
+    err.filename = str(path)
+    return err
+
+
+def _fsync_dir(folder: Path) -> None:
+    """fsync a folder so a rename in it survives a power loss (best effort: not every OS/filesystem allows it)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
-    """Call ``write(tmp_path)`` then rename the temp file onto ``path`` (same folder, so the rename is atomic)."""
+    """Call ``write(tmp_path)`` then rename the temp file onto ``path`` (same folder, so the rename is atomic).
+
+    ``write`` should flush and fsync what it writes (the ``atomic_*`` helpers below do). The file gets
+    ``0o666 & ~umask`` permissions. A full disk raises ``OSError`` naming ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        full = _disk_full_error(path, e) if isinstance(e, Exception) else None
+        if full is not None:
+            raise full from e
         raise
+    _fsync_dir(path.parent)
     return path
+
+
+def remove_stale_temps(folder: str | os.PathLike, names: Sequence[str] | None = None) -> list[Path]:
+    """Delete the temp files :func:`atomic_write` leaves when killed (``.<name>.*.tmp``) in ``folder``;
+    only those of ``names`` when given. Returns the removed paths. Call it only where no other process
+    is writing (e.g. a run's own checkpoint folder at start-up)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    removed = []
+    for p in folder.glob(".*.tmp"):
+        stem = p.name[1:].rsplit(".", 2)[0]  # .<name>.<random>.tmp -> <name>
+        if p.is_file() and (names is None or stem in names):
+            try:
+                p.unlink()
+                removed.append(p)
+            except FileNotFoundError:
+                pass
+    return removed
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -49,8 +132,45 @@ def atomic_write_json(path: str | os.PathLike, obj: Any, indent: int = 2) -> Pat
 
 
 def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
+    """``torch.save(obj)`` atomically, flushed and fsynced."""
     import torch
-    return atomic_write(path, lambda tmp: torch.save(obj, tmp))
+
+    def w(tmp):
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+    return atomic_write(path, w)
+
+
+def _numpy_globals() -> list:
+    """What older omnidl checkpoints need besides tensors: the NumPy RNG state array (``np.random.get_state()``)."""
+    import numpy as np
+    try:
+        from numpy._core.multiarray import _reconstruct
+    except ImportError:  # numpy < 2
+        from numpy.core.multiarray import _reconstruct
+    return [_reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
+
+
+def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu") -> Any:
+    """``torch.load(path, weights_only=True)`` with the allow-list of :func:`_numpy_globals`: tensors, numbers,
+    strings and containers only, so a file from the internet cannot run code. Anything else in the file, a
+    truncated file or a non-torch file is a ``RuntimeError`` naming the file."""
+    import torch
+    try:
+        with torch.serialization.safe_globals(_numpy_globals()):
+            return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # truncated, not a torch file, or pickled code
+        text = str(e)
+        if "Weights only load failed" in text or "Unsupported global" in text:
+            what = text[text.find("Unsupported global"):].split(" was not")[0] if "Unsupported global" in text else ""
+            raise RuntimeError(f"could not read checkpoint {path}: it holds Python objects other than tensors, "
+                               f"numbers and containers ({what or 'not allowed by weights_only=True'}); omnidl "
+                               "refuses to unpickle them because that can run code. If you trust the file, load it "
+                               "yourself with torch.load(weights_only=False) and re-save its state dict.") from e
+        raise RuntimeError(f"could not read checkpoint {path}: {text.splitlines()[0] if text else type(e).__name__} "
+                           "(truncated, or not a file written by torch.save)") from e
 
 
 def atomic_imwrite(path: str | os.PathLike, image) -> Path:

@@ -46,16 +46,33 @@ class SimulatedKill(RuntimeError):
     pass
 
 
-class TinyLoss(nn.Module):
-    """L1 depth + cross entropy; ``kill_at=k`` raises :class:`SimulatedKill` on the k-th training call."""
+class CorruptPanoramas(torch.utils.data.Dataset):
+    """Every sample is unreadable (``CorruptSampleError`` naming a file), like a folder of Git-LFS pointers."""
 
-    def __init__(self, kill_at: int = 0):
+    def __init__(self, length: int = 40):
+        self.length = length
+
+    def __len__(self):
+        return self.length
+
+    def __getitem__(self, i):
+        from omnidl.data.robust import CorruptSampleError
+        raise CorruptSampleError(f"could not read image rgb/pointer_{i:03d}.png (truncated)")
+
+
+class TinyLoss(nn.Module):
+    """L1 depth + cross entropy; ``kill_at=k`` raises :class:`SimulatedKill` on the k-th training call;
+    ``sleep``: seconds to wait per training call (gives a subprocess test time to send a signal)."""
+
+    def __init__(self, kill_at: int = 0, sleep: float = 0.0):
         super().__init__()
-        self.kill_at, self.calls = kill_at, 0
+        self.kill_at, self.calls, self.sleep = kill_at, 0, sleep
 
     def forward(self, outputs, batch):
         if torch.is_grad_enabled():
             self.calls += 1
+            if self.sleep:
+                __import__("time").sleep(self.sleep)
             if self.kill_at and self.calls == self.kill_at:
                 raise SimulatedKill(f"killed at training call {self.calls}")
         valid = batch["depth"] > 0

@@ -36,3 +36,24 @@ def test_every_data_config_composes(tmp_path):
             node = cfg.data.get(split)
             if node is not None:
                 assert node.root == "/r"
+
+
+def test_run_dirs_are_unique_per_command(tmp_path):
+    """Two commands started in the same second get different Hydra run dirs (ms + process id in the name)."""
+    from hydra import compose, initialize_config_dir
+
+    from omnidl.engine.config import register_configs, run_stamp
+
+    from .engine_helpers import ROOT
+    register_configs()
+    for name in ("train", "evaluate"):
+        with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "configs"), job_name="t"):
+            cfg = compose(config_name=name, return_hydra_config=True)
+        assert "${run_stamp:" in cfg.hydra.run._get_node("dir")._value(), name
+    assert str(__import__("os").getpid()) in run_stamp()
+
+
+def test_the_default_trainer_validates_and_checkpoints_by_wall_time(tmp_path):
+    cfg = make_cfg(tmp_path, [], standin=False)
+    assert cfg.trainer.val_every_minutes > 0 and cfg.trainer.ckpt_every_minutes > 0
+    assert cfg.trainer.save_optimizer is False and cfg.trainer.resume_override is False
