@@ -2,8 +2,8 @@
 
 Accepted files (``torch.load``; nothing is downloaded): an omnidl training checkpoint
 (``{"model": state_dict, ...}``, :mod:`omnidl.engine.checkpoint`), ``{"state_dict": state_dict}`` or a
-bare state dict. ``module.`` prefixes (DistributedDataParallel) are stripped. The files are un-pickled
-with ``weights_only=False`` (training checkpoints hold RNG states): only load files you trust.
+bare state dict. ``module.`` prefixes (DistributedDataParallel) are stripped. Files are read with
+``weights_only=True`` (:func:`omnidl.utils.io.safe_torch_load`): a file holding pickled code is refused, never run.
 """
 from __future__ import annotations
 
@@ -18,10 +18,8 @@ def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"weights file {path!r} does not exist")
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 (truncated or not a torch file)
-        raise RuntimeError(f"could not read weights file {path!r}: {e}") from e
+    from omnidl.utils.io import safe_torch_load
+    obj = safe_torch_load(path)           # RuntimeError naming the file: truncated, not torch, or pickled code
     if isinstance(obj, dict) and isinstance(obj.get("model"), dict):
         sd = obj["model"]
     elif isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):

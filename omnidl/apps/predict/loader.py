@@ -72,9 +72,10 @@ def load_predictor(path: str | Path, device: str = "cpu") -> Predictor:
     if not path.is_file():
         raise FileNotFoundError(f"--checkpoint {path}: no such file (give best.pt/last.pt of a train.py run, "
                                 "converted FreDSNet weights or an official HorizonNet .pth)")
+    from omnidl.utils.io import safe_torch_load
     try:
-        raw = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
+        raw = safe_torch_load(path)       # weights_only=True: a checkpoint from the internet cannot run code
+    except RuntimeError as e:
         raise RuntimeError(f"--checkpoint {path}: not a readable torch file ({e})") from e
     if not isinstance(raw, dict) or not ({"model_kwargs", "kwargs", "config"} & set(raw)):
         raise ValueError(f"--checkpoint {path}: no 'config' with a 'model' entry; it must be a checkpoint of "
