@@ -155,7 +155,7 @@ class Checkpointer:
         if not self.dist.is_main:
             return
         if state.best_step == state.step and self.best.is_file():
-            tmp = self.dir / f".last.pt.{os.getpid()}.link.tmp"
+            tmp = self.dir / f".last.pt.link-{os.getpid()}.tmp"    # .<name>.<tag>.tmp: remove_stale_temps finds it
             try:
                 tmp.unlink(missing_ok=True)
                 os.link(self.best, tmp)

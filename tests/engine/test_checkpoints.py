@@ -140,3 +140,23 @@ def test_stale_temp_files_are_removed_at_start(cfg_factory):
     (ck_dir / ".last.pt.k1l2.tmp").write_bytes(pickle.dumps("half a checkpoint"))
     train(cfg)
     assert sorted(p.name for p in ck_dir.iterdir()) == ["best.pt", "last.pt"]
+
+
+def test_a_kill_while_last_is_linked_to_best_leaves_no_temp_after_restart(cfg_factory, monkeypatch):
+    """finish() links last.pt to best.pt through a temp file; a kill there must not leave it behind for good
+    (the kill storm found `.last.pt.<pid>.link.tmp` files the start-up clean-up did not recognise)."""
+    import omnidl.engine.state as state_mod
+    cfg = cfg_factory(["trainer.max_steps=1", "trainer.tensorboard=false"], sub="t")
+    ck_dir = Path(cfg.paths.output_dir) / "checkpoints"
+
+    def killed_link(src, dst):
+        Path(dst).write_bytes(b"")          # the temp name exists, then the process dies
+        raise KeyboardInterrupt("killed between link and replace")
+    monkeypatch.setattr(state_mod.os, "link", killed_link)
+    monkeypatch.setattr(state_mod.os, "getpid", lambda: 424242)     # the killed process, not this one
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg)
+    assert any(p.name.endswith(".tmp") for p in ck_dir.iterdir())
+    monkeypatch.undo()
+    train(cfg)                               # the rerun (resume of a finished run) cleans up at start
+    assert sorted(p.name for p in ck_dir.iterdir()) == ["best.pt", "last.pt"]
