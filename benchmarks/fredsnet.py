@@ -2,6 +2,7 @@
 torchvision's ResNet-50 forward measured in the same run.
 
     python benchmarks/fredsnet.py [--threads 2] [--reps 5] [--extra-equi backbone wconv,heads] [--json out.json]
+    python benchmarks/fredsnet.py --scaling [--threads 2] [--reps 5]   # forward growth 512x256 -> 1024x512
 
 Protocol (as the reference measurement in the project notes): ``torch.set_num_threads(threads)``,
 random weights, batch 1, 2 warm-up runs (the Equi layers build their sampling plans there);
@@ -80,9 +81,13 @@ def main(argv: list[str] | None = None) -> dict:
                     help="more Equi variants to time, each a comma-separated equi_parts list, e.g. backbone wconv,heads")
     ap.add_argument("--skip-equi", action="store_true")
     ap.add_argument("--json", default=None, help="also write the results here")
+    ap.add_argument("--scaling", action="store_true",
+                    help="only time the Std forward at 512x256 and 1024x512 (interleaved) and print the growth")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
+    if a.scaling:
+        return scaling(a)
     print(f"torch {torch.__version__}, {a.threads} threads, load average {os.getloadavg()}", flush=True)
     print(load_line(a.threads, "at start"), flush=True)
 
@@ -149,6 +154,43 @@ def main(argv: list[str] | None = None) -> dict:
     print(load_line(a.threads, "at end"))
     print(f"Std forward target (<= 0.8 s): {'met' if res['std_fwd_target_met'] else 'NOT met'} "
           f"(load average {res['load_after']}; absolute times need an idle machine)")
+    if a.json:
+        from omnidl.utils.io import atomic_write_json
+        atomic_write_json(a.json, res)
+    return res
+
+
+def scaling(a: argparse.Namespace) -> dict:
+    """Issue 17 item 4: the Std forward should grow like the pixels (x4 from 512x256 to 1024x512). Both sizes
+    are timed in every repetition (order alternated); growth = median of per-repetition ratios, in wall and in
+    CPU time (the steadier figure on a shared machine)."""
+    from benchmarks._timing import load1
+    model = FreDSNet(backbone=a.backbone, width=a.width).eval()
+    sizes = {"512x256": torch.rand(1, 3, 256, 512), "1024x512": torch.rand(1, 3, 512, 1024)}
+    l0 = load1()
+    print(load_line(a.threads, "at start"), flush=True)
+    wall: dict[str, list[float]] = {k: [] for k in sizes}
+    cpu: dict[str, list[float]] = {k: [] for k in sizes}
+    with torch.no_grad():
+        for x in sizes.values():
+            for _ in range(max(1, a.warmup)):
+                model(x)
+        for r in range(a.reps):
+            for k in (list(sizes) if r % 2 == 0 else list(sizes)[::-1]):
+                t, c = time.perf_counter(), time.process_time()
+                model(sizes[k])
+                wall[k].append(time.perf_counter() - t)
+                cpu[k].append(time.process_time() - c)
+    g_wall = statistics.median(b / s for b, s in zip(wall["1024x512"], wall["512x256"]))
+    g_cpu = statistics.median(b / s for b, s in zip(cpu["1024x512"], cpu["512x256"]))
+    res = {"threads": a.threads, "reps": a.reps, "growth_wall": g_wall, "growth_cpu": g_cpu,
+           "fwd_512x256_s": statistics.median(wall["512x256"]), "fwd_1024x512_s": statistics.median(wall["1024x512"]),
+           "load1": [l0, load1()]}
+    print(f"forward 512x256 {res['fwd_512x256_s']:.3f} s, 1024x512 {res['fwd_1024x512_s']:.3f} s (medians, wall)")
+    print(f"TARGET FreDSNet forward growth 512x256 -> 1024x512 (x4 pixels): x{g_wall:.2f} wall, x{g_cpu:.2f} CPU "
+          f"(target <= x4.2: {'met' if g_wall <= 4.2 else 'MISSED'}); load {l0:.2f}-{res['load1'][1]:.2f}"
+          + (" [taken under load]" if max(res["load1"]) > a.threads else ""))
+    print(load_line(a.threads, "at end"))
     if a.json:
         from omnidl.utils.io import atomic_write_json
         atomic_write_json(a.json, res)

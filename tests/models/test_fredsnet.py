@@ -255,6 +255,7 @@ def test_fusion_head_is_the_weighted_sum_of_upsampled_maps(train, channels_last,
     import omnidl.nn.fusion as fusion
     from omnidl.models.fredsnet import FusionHead
     monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)          # several row blocks and deferred width passes
+    monkeypatch.setattr(fusion, "MIN_BLOCK_ROWS", 8)       # (two 8-row blocks of the 16-row map)
     torch.manual_seed(4)
     head = FusionHead([8, 6, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
                       wconv_kwargs={}).double().train(train)
@@ -288,3 +289,26 @@ def test_channels_last_matches_contiguous_layout():
     for k in oa:
         assert oa[k].is_contiguous()
         torch.testing.assert_close(oa[k], ob[k], atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_fusion_head_block_floor_keeps_outputs(dtype, tol, monkeypatch):
+    """The 16-row block floor (issue 17 item 4: the head's cost stays linear in pixels) gives the outputs of the
+    previous 8-row floor and of one whole-map block."""
+    import omnidl.nn.fusion as fusion
+    from omnidl.models.fredsnet import FusionHead
+    assert fusion.MIN_BLOCK_ROWS == 16 and fusion.rows_per_block(1, 128, 1 << 20) == 16
+    torch.manual_seed(6)
+    head = FusionHead([8, 6, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
+                      wconv_kwargs={}).to(dtype).eval().to(memory_format=torch.channels_last)
+    maps = [torch.randn(1, c, 8 * k, 16 * k, dtype=dtype).contiguous(memory_format=torch.channels_last)
+            for c, k in ((8, 1), (6, 2), (4, 4))]                     # full map 32x64
+    monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)
+    outs = {}
+    with torch.no_grad():
+        for floor in (8, 16, 32):                                    # 4, 2 and 1 row blocks
+            monkeypatch.setattr(fusion, "MIN_BLOCK_ROWS", floor)
+            outs[floor] = head(maps)
+    for floor in (8, 16):
+        torch.testing.assert_close(outs[floor], outs[32], rtol=tol, atol=tol)
+
