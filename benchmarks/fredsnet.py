@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> dict:
     cam = Equirectangular(width=512, height=256)
     variants: list[tuple[str, dict]] = [("std", {})]
     if not a.skip_equi:
-        equi = dict(conv="equi", camera=cam)
+        equi = dict(conv="projected", camera=cam)
         if a.equi_parts:
             equi["equi_parts"] = tuple(a.equi_parts)
         variants.append(("equi", equi))
