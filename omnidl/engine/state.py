@@ -157,9 +157,12 @@ class Checkpointer:
         if state.best_step == state.step and self.best.is_file():
             tmp = self.dir / f".last.pt.link-{os.getpid()}.tmp"    # .<name>.<tag>.tmp: remove_stale_temps finds it
             try:
+                if self.last.is_file() and os.path.samefile(self.best, self.last):
+                    return                               # already one file (a resumed finished run)
                 tmp.unlink(missing_ok=True)
                 os.link(self.best, tmp)
-                os.replace(tmp, self.last)
+                os.replace(tmp, self.last)               # a no-op when both are links of one file...
+                tmp.unlink(missing_ok=True)              # ... so never leave the temp link behind
                 return
             except OSError:
                 tmp.unlink(missing_ok=True)

@@ -160,3 +160,16 @@ def test_a_kill_while_last_is_linked_to_best_leaves_no_temp_after_restart(cfg_fa
     monkeypatch.undo()
     train(cfg)                               # the rerun (resume of a finished run) cleans up at start
     assert sorted(p.name for p in ck_dir.iterdir()) == ["best.pt", "last.pt"]
+
+
+def test_finishing_again_when_last_is_already_the_best_link_leaves_no_temp(cfg_factory):
+    """rename() between two links of one file does nothing, so linking last.pt to best.pt a second time (a resumed
+    finished run, or a kill after the first link) must not leave the temp link behind (found by the kill storm)."""
+    cfg = cfg_factory(["trainer.max_steps=1", "trainer.tensorboard=false"], sub="t")
+    ck_dir = Path(cfg.paths.output_dir) / "checkpoints"
+    train(cfg)
+    assert (ck_dir / "last.pt").samefile(ck_dir / "best.pt")
+    with open_dict(cfg):
+        cfg.trainer.resume = True
+    train(cfg)
+    assert sorted(p.name for p in ck_dir.iterdir()) == ["best.pt", "last.pt"]
