@@ -96,7 +96,7 @@ RECIPES: list[Recipe] = [
     Recipe(r"^python train\.py -m ", smoke=f"{SMOKE_TRAIN} {PANO_64} hydra.sweep.dir={{tmp}}/sweep",
            outputs=("sweep/0/metrics.json",), produces="sweep"),
     Recipe(r"\+search=", smoke=f"{SMOKE_TRAIN} {PANO_64} search.trials=1 search.sobol_trials=1 "
-                                "search.dir={tmp}/search hydra.run.dir={tmp}/run",
+                                "search.dir={tmp}/search search.config_dir={tmp}/configs hydra.run.dir={tmp}/run",
            outputs=("search/trials.csv",)),
     Recipe(r"^python evaluate\.py .*postprocess=", subs=((_CKPT, "{ckpt:horizonnet_nc}"),),
            smoke=f"{SMOKE_EVAL} {_RUN}", outputs=("run/metrics.json", "run/postprocess.jsonl")),
