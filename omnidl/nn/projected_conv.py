@@ -19,6 +19,7 @@ from omnidl.cameras.resolve import resolve_camera
 
 from .offsets import Pair, compute_sampling
 from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
+from .tiled import tiled_conv2d, tiled_supported
 
 Backend = Literal["auto", "fast", "torchvision"]
 
@@ -112,8 +113,9 @@ class ProjectedConv2d(nn.Conv2d):
             at the camera's reference pixel — principal point, or the panorama centre on
             the equator — the taps are exactly ``dilation`` pixels apart).
         image_padding: ``(pad_right, pad_bottom)`` of the calibrated image before the network.
-        chunk_positions: output positions per chunk on the fast path (``None``: automatic,
-            about ``sampling.CHUNK_BYTES`` of columns per chunk).
+        chunk_positions: output positions per chunk of the fast path's column GEMM (``None``: automatic,
+            about ``sampling.CHUNK_BYTES`` of columns per chunk; on CPU float32 ``None`` runs the tiled
+            oneDNN path of :mod:`omnidl.nn.tiled` instead of the GEMM).
 
     Input ``(B, C, H, W)``; output ``(B, Cout, Ho, Wo)`` (channels-last strides on the fast path).
     Under autocast, or with float16/bfloat16 tensors, the fast backend computes in float32 and returns the
@@ -201,14 +203,20 @@ class ProjectedConv2d(nn.Conv2d):
                 # (MKL), so the fast backend computes in float32 and returns the autocast (or input) dtype
                 out_dtype = torch.get_autocast_dtype(dev) if autocast else x.dtype
                 with torch.autocast(dev, enabled=False):
-                    y = fixed_offset_conv2d(x.float(), weight.float(), None if bias is None else bias.float(),
-                                            get_plan(key, x.device, torch.float32), positions=self.chunk_positions)
+                    y = self._fast(x.float(), weight.float(), None if bias is None else bias.float(), key)
                 return y.to(out_dtype)
-            plan = get_plan(key, x.device, x.dtype)
-            return fixed_offset_conv2d(x, weight, bias, plan, positions=self.chunk_positions)
+            return self._fast(x, weight, bias, key)
         off, mask = get_offsets(key, x.device, x.dtype)
         return deform_conv2d_reference(x, weight, bias, off, mask, self.stride, self._padding_pair(),
                                        self.dilation, wrap=key[6])
+
+    def _fast(self, x: Tensor, weight: Tensor, bias: Tensor | None, key: tuple) -> Tensor:
+        """The fast backend: oneDNN convolution of gathered tiles on CPU float32 (:mod:`.tiled`), else the
+        column GEMM (:func:`fixed_offset_conv2d`; also whenever ``chunk_positions`` is given)."""
+        plan = get_plan(key, x.device, x.dtype)
+        if self.chunk_positions is None and tiled_supported(x, weight):
+            return tiled_conv2d(x, weight, bias, plan)
+        return fixed_offset_conv2d(x, weight, bias, plan, positions=self.chunk_positions)
 
     def extra_repr(self) -> str:
         s = super().extra_repr()

@@ -23,6 +23,9 @@ every image. Outputs and
 input gradients keep the memory format of the input (channels-last is copy-free; NCHW costs
 one layout copy of the input, one per output chunk and one of the input gradient).
 
+On CPU float32, :class:`~omnidl.nn.ProjectedConv2d` runs the forward through :mod:`.tiled` instead (the
+same taps convolved by oneDNN, faster than the GEMM of the columns) and this backward.
+
 :func:`deform_conv2d_reference` runs ``torchvision.ops.deform_conv2d`` with the same
 offsets and mask (circular padding of the input for ``wrap``): the test reference.
 """
@@ -52,7 +55,8 @@ class SamplingPlan:
 
     ``idx (N, 4)`` flat input pixels (int32; int64 for huge images) and ``weight (N, 4)``
     bilinear weights (0 for corners that read zero), ``N = Ho * Wo * kh * kw``. Chunked sparse transposes are
-    built on first use per chunk length and kept in ``chunk_cache``.
+    built on first use per chunk length and kept in ``chunk_cache``; plans derived from this one (the tiled
+    row order of :mod:`.tiled`) are kept in ``derived``.
     """
 
     in_hw: Pair
@@ -61,6 +65,7 @@ class SamplingPlan:
     idx: Tensor
     weight: Tensor
     chunk_cache: dict = field(default_factory=dict, repr=False)
+    derived: dict = field(default_factory=dict, repr=False)  # e.g. the tiled reordering (:mod:`.tiled`)
 
     @property
     def taps(self) -> int:
@@ -103,7 +108,7 @@ class SamplingPlan:
         for chunks in self.chunk_cache.values():
             for *_, st in chunks:
                 n += sum(t.numel() * t.element_size() for t in (st.crow_indices(), st.col_indices(), st.values()))
-        return n
+        return n + sum(p.nbytes() for p in self.derived.values())
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "SamplingPlan":
         """A copy on ``device`` with weights of ``dtype`` (chunk transposes are rebuilt lazily)."""
@@ -227,6 +232,19 @@ def _run_split(tasks: list, fn, device: torch.device) -> list:
     return list(_cpu_pool(workers).map(run, parts))
 
 
+def save_columns_context(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan, positions: int,
+                         xr: Tensor) -> None:
+    """Store on ``ctx`` what :meth:`_FixedOffsetConv.backward` needs (``xr``: the input as ``(B, H*W, C)`` rows)."""
+    K = plan.taps
+    ctx.plan = plan
+    ctx.positions = positions
+    ctx.has_bias = bias is not None
+    ctx.channels_last = _is_channels_last(x)
+    ctx.save_for_backward(xr if weight.requires_grad else None,
+                          weight.detach().permute(2, 3, 1, 0).reshape(K * x.shape[1], weight.shape[0]))
+    ctx.in_shape = tuple(x.shape)
+
+
 class _FixedOffsetConv(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,  # type: ignore[override]
@@ -267,12 +285,7 @@ class _FixedOffsetConv(torch.autograd.Function):
                     else:
                         torch.addmm(bcol, wmt, cols.t(), out=out[b, :, s:e])
         _run_split(tasks, work, x.device)
-        ctx.plan = plan
-        ctx.positions = positions
-        ctx.has_bias = bias is not None
-        ctx.channels_last = channels_last
-        ctx.save_for_backward(xr if weight.requires_grad else None, wm)
-        ctx.in_shape = (B, C, H, W)
+        save_columns_context(ctx, x, weight, bias, plan, positions, xr)
         return result
 
     @staticmethod
