@@ -4,7 +4,9 @@
 
 Targets (issue 17, item 5; issue 4 had 0.5 s / 50 ms): 1024x512 <= 150 ms and 256x128 <= 25 ms on 2 CPU cores. The named baseline measured in
 the same run is ``brute force``: the same render with object culling disabled (every box slab-tested
-against every pixel); the ratio baseline / engine is printed next to the absolute medians. Process CPU
+against every pixel); the ratio baseline / engine is printed next to the absolute medians. ``previous``
+is the renderer before the issue-17 speed work (``omnidl.synth.reference``, same outputs bit for bit),
+timed interleaved with the engine (``--no-previous`` skips it). Process CPU
 time is printed too: on a shared machine it is the steadier figure (wall time includes waiting for cores).
 """
 from __future__ import annotations
@@ -13,15 +15,15 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._timing import is_loaded, load_line, median_times, target_line  # noqa: E402
+from benchmarks._timing import interleaved, is_loaded, load_line, median_times, ratio, target_line  # noqa: E402
 from omnidl.cameras import build  # noqa: E402
 from omnidl.synth import place_camera, render, sample_room  # noqa: E402
 from omnidl.synth import raycast  # noqa: E402
+from omnidl.synth.reference import render_reference  # noqa: E402
 
 
 class _BruteForce:
@@ -30,7 +32,8 @@ class _BruteForce:
     def __enter__(self):
         self.orig = raycast.cast_boxes
 
-        def brute(origin, direction, boxes, groups, t_best, centre, rig_radius):
+        def brute(origin, direction, boxes, groups, t_best, centre, rig_radius, **_culling):
+            # the engine's culling inputs (tile candidates, group spheres) are dropped: every ray, every box
             single = [torch.tensor([i]) for g in groups for i in g.tolist()]
             return self.orig(origin, direction, boxes, single, t_best, centre, rig_radius, cull=False)
 
@@ -51,6 +54,8 @@ def main() -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[3, 11, 42])
     p.add_argument("--cameras", nargs="+", default=["equirect", "noncentral_pano"])
     p.add_argument("--profile", action="store_true")
+    p.add_argument("--no-previous", dest="previous", action="store_false",
+                   help="skip the interleaved timing of the previous renderer (omnidl.synth.reference)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} threads, median of {args.reps}")
@@ -79,6 +84,13 @@ def main() -> None:
                 print(target_line(f"render {cam_type} {w}x{h} seed {seed} (layout GT)", f"{t_engine * 1e3:.1f} ms",
                                   t_engine / t_brute, "brute force", f"<= {target * 1e3:.0f} ms", t_engine <= target,
                                   is_loaded(args.threads)), flush=True)
+                if args.previous:
+                    times = interleaved({"engine": lambda: render(sc, cam, pose, layout=True),
+                                         "previous": lambda: render_reference(sc, cam, pose, layout=True)}, args.reps)
+                    med = {k: sorted(v)[len(v) // 2] for k, v in times.items()}
+                    print(f"{'':16s} {w:4d}x{h:<4d} seed {seed:3d}: interleaved engine {med['engine'] * 1e3:7.1f} ms, "
+                          f"previous renderer {med['previous'] * 1e3:7.1f} ms: engine/previous "
+                          f"{ratio(times, 'engine', 'previous'):.2f}x", flush=True)
     print(load_line(args.threads, "at end"), flush=True)
     t_room = median_times(lambda: [sample_room(s) for s in range(20)], 3)[0] / 20
     print(f"room sampling (floor plan + furniture): {t_room * 1e3:.1f} ms per room")
