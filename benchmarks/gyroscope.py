@@ -7,7 +7,10 @@
 256x128, horizon RANSAC, MPP yaw n = 3 with 4 starts, PVG n = 5) with the ResNet-50 + EquiConv thesis model
 and the small CPU model, random weights; the network runs but the tilt comes from ground-truth heat maps (an
 untrained net gives no valid horizon), so MPP/PVG start where a trained net would put them. The stages are
-also timed alone. The named baseline, interleaved in the same run, is a reference-style MPP
+also timed alone (also as in a frame: with the reference's parts prepared once). ``Gyroscope.track`` (the network
+of the next frame in a worker thread while this one's horizon fit, MPP and PVG run, one intra-op thread each;
+same results as ``estimate`` on one thread) is timed on a few frames: its fps is the throughput of a stream.
+The named baseline, interleaved in the same run, is a reference-style MPP
 (``benchmarks/mpp_reference.py``: one start, all N x N Gaussian sums re-computed every Gauss-Newton
 iteration) on a pure-yaw pair, against omnidl's MPP with one start on the same pair. Targets (issue 17,
 item 1): >= 8 fps (ResNet-50-Equi), >= 20 fps (small), MPP >= 1.5x the baseline. (The published MPP
@@ -80,6 +83,8 @@ def speed(args) -> dict:
 
     gyros = {tag: gyro(net, "auto") for tag, net in nets.items()}
     g_all_threads = gyro(nets["holinet_small_std"], None)
+    gs = gyros["holinet_small_std"]  # its prepared reference parts, as the pipeline passes them
+    seq = [cur] * TRACK_FRAMES
     one = lambda fn: (lambda: _single(fn))  # noqa: E731 - photometric stages as the pipeline runs them
 
     def _single(fn):
@@ -90,6 +95,10 @@ def speed(args) -> dict:
         "MPP 1 start": one(lambda: mpp_yaw(cur_yaw, ref, level=3, lambda_g=0.325, tries=1)),
         "MPP 4 starts": one(lambda: mpp_yaw(cur, ref, R.float(), level=3, lambda_g=0.325, tries=4)),
         "PVG (n=5)": one(lambda: pvg_refine(cur, ref, R.float(), level=5)),
+        "MPP 4 starts, prepared reference (as in a frame)": one(lambda: mpp_yaw(
+            cur, ref, R.float(), level=3, lambda_g=0.325, tries=4, reference_field=gs.ref_mpp_field)),
+        "PVG (n=5), prepared reference (as in a frame)": one(lambda: pvg_refine(
+            cur, ref, R.float(), level=5, reference_values=gs.ref_pvg)),
         "MPP 1 start, impl='reference' (before issue 17)": one(
             lambda: mpp_yaw(cur_yaw, ref, level=3, lambda_g=0.325, tries=1, impl="reference")),
         "PVG (n=5), impl='reference' (before issue 17)": one(
@@ -98,6 +107,8 @@ def speed(args) -> dict:
         "frame HoLiNet-R50-Equi": lambda: gyros["holinet_resnet50_equi"].estimate(cur),
         "frame HoLiNet-small": lambda: gyros["holinet_small_std"].estimate(cur),
         "frame HoLiNet-small, photometric on all threads": lambda: g_all_threads.estimate(cur),
+        f"{TRACK_FRAMES} frames HoLiNet-R50-Equi, track()": lambda: list(gyros["holinet_resnet50_equi"].track(seq)),
+        f"{TRACK_FRAMES} frames HoLiNet-small, track()": lambda: list(gs.track(seq)),
     }
     for tag, net in nets.items():
         x = torch.rand(1, 3, 128, 256)
@@ -136,12 +147,23 @@ def speed(args) -> dict:
         print(target_line(f"{tag} fps", f"{fps:.2f} fps ({med[k] * 1e3:.0f} ms/frame)", ratio(times, k, base),
                           "the baseline MPP's time", f">= {tgt:g} fps", fps >= tgt, loaded))
         res[k + " fps"] = fps
+        kt = f"{TRACK_FRAMES} frames {k[len('frame '):]}, track()"
+        fps_t = TRACK_FRAMES / med[kt]
+        print(target_line(f"{tag} fps, pipelined (Gyroscope.track: network of frame k+1 || horizon fit + MPP + "
+                          "PVG of frame k, 1 thread each)",
+                          f"{fps_t:.2f} fps ({med[kt] * 1e3 / TRACK_FRAMES:.0f} ms/frame)",
+                          ratio(times, kt, base) / TRACK_FRAMES, "the baseline MPP's time", f">= {tgt:g} fps",
+                          fps_t >= tgt, loaded))
+        res[kt + " fps"] = fps_t
     fwd_share = med["forward holinet_resnet50_equi"] / med["frame HoLiNet-R50-Equi"]
     print(f"HoLiNet-R50-Equi forward = {fwd_share:.0%} of its frame; photometric all-threads / 'auto' frame "
           f"(small net) = {ratio(times, 'frame HoLiNet-small, photometric on all threads', 'frame HoLiNet-small'):.2f}x")
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=2, default=float))
     return res
+
+
+TRACK_FRAMES = 4  # frames per timed Gyroscope.track() call
 
 
 def _stats(err: torch.Tensor, thr: float) -> dict:

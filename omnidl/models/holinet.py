@@ -71,6 +71,25 @@ def _up(x: Tensor) -> Tensor:
     return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
 
 
+def _cat_wrap(parts: list[Tensor], pad: int, channels_last: bool) -> Tensor:
+    """``F.pad(torch.cat(parts, 1), (pad, pad, 0, 0), mode="circular")`` written once into one buffer in the
+    parts' layout: ``parts`` ``(B, C_i, H, W)`` -> ``(B, sum C_i, H, W + 2 pad)`` (same values; the separate
+    cat and pad cost two full copies and, in channels-last, a layout conversion before the next conv)."""
+    B, _, H, W = parts[0].shape
+    C = sum(t.shape[1] for t in parts)
+    fmt = torch.channels_last if channels_last else torch.contiguous_format
+    out = torch.empty(B, C, H, W + 2 * pad, dtype=parts[0].dtype, device=parts[0].device, memory_format=fmt)
+    c = 0
+    for t in parts:
+        n = t.shape[1]
+        out[:, c:c + n, :, pad:pad + W].copy_(t)
+        if pad:
+            out[:, c:c + n, :, :pad].copy_(t[..., W - pad:])
+            out[:, c:c + n, :, pad + W:].copy_(t[..., :pad])
+        c += n
+    return out
+
+
 class HoLiNet(nn.Module):
     """Horizon / vanishing-point heat-map network.
 
@@ -112,6 +131,19 @@ class HoLiNet(nn.Module):
         self.channels_last = bool(channels_last)
         if self.channels_last:
             self.to(memory_format=torch.channels_last)
+        # decoder inputs of conv="standard": concatenation and longitude wrap written into one buffer
+        # (:func:`_cat_wrap`); False = the modules' own torch.cat + F.pad (the reference, same values)
+        self.fuse_wrap = True
+
+    def _block(self, block: _ConvAct, parts: list[Tensor]) -> Tensor:
+        """``block(torch.cat(parts, 1))``, with the wrap of a circular block fused into the concatenation."""
+        wrap = block[0]
+        if self.fuse_wrap and isinstance(wrap, _HorizontalWrap):
+            x = _cat_wrap(parts, wrap.pad, self.channels_last)
+            for m in list(block)[1:]:
+                x = m(x)
+            return x
+        return block(parts[0] if len(parts) == 1 else torch.cat(parts, 1))
 
     def forward(self, image: Tensor) -> dict[str, Tensor]:
         """``image (B, 3, H, W)`` RGB in ``[0, 1]`` -> dict of logits (see the module docstring)."""
@@ -122,15 +154,16 @@ class HoLiNet(nn.Module):
         if self.channels_last:
             image = image.contiguous(memory_format=torch.channels_last)
         f0, f1, f2, f3, f4 = self.encoder(image)
-        x = _up(self.dec32(f4))
-        x16 = self.dec16(torch.cat([x, f3], 1))
-        a16 = self.out16(x16)
-        x8 = self.dec8(torch.cat([_up(x16), f2, _up(a16)], 1))
-        a8 = self.out8(x8)
-        x4 = self.dec4(torch.cat([_up(x8), f1, _up(a8)], 1))
-        a4 = self.out4(x4)
-        x2 = self.dec2(torch.cat([_up(x4), f0, _up(a4)], 1))
-        out = self.out2(x2)
+        blk = self._block
+        x = _up(blk(self.dec32, [f4]))
+        x16 = blk(self.dec16, [x, f3])
+        a16 = blk(self.out16, [x16])
+        x8 = blk(self.dec8, [_up(x16), f2, _up(a16)])
+        a8 = blk(self.out8, [x8])
+        x4 = blk(self.dec4, [_up(x8), f1, _up(a8)])
+        a4 = blk(self.out4, [x4])
+        x2 = blk(self.dec2, [_up(x4), f0, _up(a4)])
+        out = blk(self.out2, [x2])
         out, a16, a8, a4 = (t.contiguous() for t in (out, a16, a8, a4))
         return {"horizon": out[:, :1], "vp": out[:, 1:], "aux_16": a16, "aux_8": a8, "aux_4": a4}
 

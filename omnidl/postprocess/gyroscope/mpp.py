@@ -120,6 +120,62 @@ def mpp_table(X: Tensor, I: Tensor, lambda_g: float, height: int = 64) -> Tensor
     return torch.cat([G.unsqueeze(-1), grad], -1).transpose(1, 2).reshape(B, 4, height, 2 * height)
 
 
+@lru_cache(maxsize=8)
+def _symmetric_kernels(level: int, lambda_g: float, height: int, dtype: torch.dtype, device: str):
+    """The table kernels of :func:`_kernels` on one octant of the grid, with the maps that give the rest.
+
+    The icosahedron vertices (``(0, +-1, +-phi)`` cyclic, subdivided by midpoints) and the equirectangular grid
+    are both invariant under the 8 coordinate sign flips ``s`` (columns ``j <-> W - 1 - j`` and
+    ``W/2 - 1 - j``, rows ``i <-> H - 1 - i``), so with ``X[perm_s] = s X``:
+    ``G(s d) = K_o[d] . I[perm_s]`` and ``grad(s d) = s (Kr_o[d] @ (I[perm_s] X))`` for ``d`` in the octant
+    ``x, y, z > 0``: the kernel rows read per table are 8x fewer (1.3 MB instead of 10 MB at the defaults:
+    they stay in cache). Returns ``(K_o, Kr_o (M/8, N), perm (8, N), signs (8, 3), order (M,))`` with the
+    table = ``(values per (s, octant point)).flatten()[order]``, or ``None`` when a sign flip of a vertex or
+    grid point is not one (then :func:`mpp_table_fast` uses the full kernels). The grid directions are
+    mirror images to ~2e-8 only (their float64 construction), so the symmetry serves float32 tables."""
+    X = icosahedron_vertices(level, torch.float64, device)
+    d = Equirectangular(width=2 * height, height=height).unproject_grid(torch.float64, device).direction.reshape(-1, 3)
+    signs = torch.tensor([[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)], dtype=torch.float64,
+                         device=device)
+    octant = torch.nonzero((d > 0).all(-1))[:, 0]
+    if 8 * octant.numel() != d.shape[0]:
+        return None
+    perm, where = [], torch.empty(d.shape[0], dtype=torch.int64, device=device)
+    for k, sg in enumerate(signs):
+        dist, idx = torch.cdist(X * sg, X).min(-1)  # X[idx] = s X
+        pd, pidx = torch.cdist(d[octant] * sg, d).min(-1)  # d[pidx] = s d_octant
+        if float(dist.max()) > 1e-6 or float(pd.max()) > 1e-6:  # (the grid is mirror-exact to ~2e-8 only)
+            return None
+        perm.append(idx)
+        where[pidx] = k * octant.numel() + torch.arange(octant.numel(), device=device)
+    K, Kr = _kernels(level, float(lambda_g), int(height), torch.float64, device)
+    return (K[octant].to(dtype), Kr[octant].to(dtype), torch.stack(perm), signs.to(dtype), where)
+
+
+def mpp_table_fast(X: Tensor, I: Tensor, lambda_g: float, height: int = 32) -> Tensor:
+    """:func:`mpp_table` for icosahedron vertices ``X`` from the kernels of one grid octant and the 8 sign-flip
+    symmetries in float32 (:func:`_symmetric_kernels`: ~10 ops on in-cache data instead of two passes over
+    10 MB of kernels); same values up to rounding. Float64 (or no symmetry): ``G = I @ K.T``,
+    ``grad.T = (I X).T @ Kr.T`` (the small operand on the left). Other ``X``: :func:`mpp_table`."""
+    level = _level_of(X)
+    if level is None or X.dtype not in (torch.float32, torch.float64) or not _is_icosahedron(X, level):
+        return mpp_table(X, I, lambda_g, height)
+    B, N = I.shape
+    sym = None if X.dtype != torch.float32 else _symmetric_kernels(level, float(lambda_g), int(height), X.dtype,
+                                                                    str(X.device))
+    if sym is None:
+        K, Kr = _kernels(level, float(lambda_g), int(height), X.dtype, str(X.device))
+        G = I @ K.T  # (B, M)
+        grad = (I.unsqueeze(1) * X.T.contiguous()).reshape(3 * B, -1) @ Kr.T  # (3B, N) row-major @ (N, M)
+        return torch.cat([G.unsqueeze(1), grad.view(B, 3, -1)], 1).view(B, 4, height, 2 * height)
+    Ko, Kro, perm, signs, where = sym
+    Ip = I[:, perm]  # (B, 8, N): samples re-indexed by each flip
+    G = Ip @ Ko.T  # (B, 8, M/8)
+    grad = ((Ip.unsqueeze(2) * X.T.contiguous()).view(B, 24, N) @ Kro.T).view(B, 8, 3, -1) * signs[:, :, None]
+    vals = torch.cat([G.unsqueeze(2), grad], 2)  # (B, 8, 4, M/8)
+    return vals.transpose(1, 2).reshape(B, 4, -1)[:, :, where].view(B, 4, height, 2 * height)
+
+
 def mpp_vertex_field(X: Tensor, I: Tensor, lambda_g: float) -> Tensor:
     """``G`` of samples ``I (B, N)`` at the vertices ``X`` themselves ``(B, N)`` (cached kernel when ``X`` is an
     icosahedron; equals ``mpp_field(X, I, X[None], lambda_g)[0]`` up to rounding)."""
@@ -140,7 +196,7 @@ class MPPResult:
 def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, axis: Tensor | None = None,
             level: int = 3, lambda_g: float = 0.325, tries: int = 4, max_iter: int = 30, tol: float = 1e-6,
             prefilter: bool = True, reference_samples: Tensor | None = None, grid_height: int = 32,
-            impl: str = "fast") -> MPPResult:
+            impl: str = "fast", reference_field: Tensor | None = None) -> MPPResult:
     """Yaw of ``current`` w.r.t. ``reference`` (both ``(B, C, H, W)`` equirect, or ``reference (1, ...)``).
 
     Args:
@@ -151,10 +207,14 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
         reference_samples: precomputed ``mpp_samples(reference)[1]`` to reuse over a sequence.
         grid_height: tabulate ``G_cur`` on a ``grid_height x 2 grid_height`` grid (0 = exact sums).
         max_iter, tol: Gauss-Newton stops when every yaw step is below ``tol`` rad or after ``max_iter``.
-        impl: ``"fast"`` (cached Gaussian kernels: the table and ``G_ref`` are GEMMs; the table padded once;
-            yaw rotations by Rodrigues) or ``"reference"`` (the original evaluation); equal up to rounding.
+        impl: ``"fast"`` (the table from cached kernels, :func:`mpp_table_fast`; the rotated centres and
+            Jacobian directions of all starts as one ``(B, T, 3) x (B, 3, 6N)`` product per iteration, read
+            as component rows; ``J.J``, ``J.e``, ``e.e`` from one small product; buffers allocated once:
+            see :func:`_mpp_fast`) or ``"reference"`` (the original evaluation); equal up to rounding.
             With ``grid_height=0`` both run the reference loop (``acos`` near 1 amplifies float32 rounding
             of the rotated points, so no reformulation of it reproduces its digits).
+        reference_field: ``mpp_vertex_field(X, reference_samples, lambda_g)`` ``(B|1, N)`` prepared once per
+            reference (``impl="fast"`` only; then ``reference`` and ``reference_samples`` are not read).
     Returns:
         :class:`MPPResult` with ``rotation = exp(yaw [axis]x) R_init``.
     """
@@ -163,6 +223,21 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
     B = current.shape[0]
     dtype = current.dtype if current.dtype == torch.float64 else torch.float32
     current = current.to(dtype)
+    eye = torch.eye(3, dtype=dtype, device=current.device)
+    R0 = eye.expand(B, 3, 3) if R_init is None else R_init.to(dtype).expand(B, 3, 3)
+    a = torch.tensor([0.0, 1.0, 0.0], dtype=dtype, device=current.device) if axis is None else axis.to(dtype)
+    a = (a / a.norm(dim=-1, keepdim=True)).expand(B, 3)
+    if impl == "fast" and grid_height > 0:  # the exact sums (grid_height=0) keep the reference loop: float32
+        # the samples as the reference path computes them: the yaw is the evaluated angle of least cost, and
+        # near convergence two angles ~1e-5 apart have costs equal to rounding, so a perturbation of the
+        # samples of 1e-8 (a GEMM blur) can flip the pick (the loop below perturbs the costs much less)
+        X, Ic = mpp_samples(current, level, prefilter)
+        if reference_field is None:
+            Ir = mpp_samples(reference.to(dtype), level, prefilter)[1] if reference_samples is None else \
+                reference_samples.to(dtype)
+            reference_field = mpp_vertex_field(X, Ir, lambda_g)
+        G_ref = reference_field.to(dtype).expand(B, X.shape[0])
+        return _mpp_fast(X, Ic, G_ref, R0, a, lambda_g, tries, max_iter, tol, grid_height)
     X, Ic = mpp_samples(current, level, prefilter)
     if reference_samples is None:
         _, Ir = mpp_samples(reference.to(dtype), level, prefilter)
@@ -170,12 +245,6 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
         Ir = reference_samples.to(dtype)
     if Ir.shape[0] == 1 and B > 1:
         Ir = Ir.expand(B, -1)
-    eye = torch.eye(3, dtype=dtype, device=current.device)
-    R0 = eye.expand(B, 3, 3) if R_init is None else R_init.to(dtype).expand(B, 3, 3)
-    a = torch.tensor([0.0, 1.0, 0.0], dtype=dtype, device=current.device) if axis is None else axis.to(dtype)
-    a = (a / a.norm(dim=-1, keepdim=True)).expand(B, 3)
-    if impl == "fast" and grid_height > 0:  # the exact sums (grid_height=0) keep the reference loop: float32
-        return _mpp_fast(X, Ic, Ir, R0, a, lambda_g, tries, max_iter, tol, grid_height)
     G_ref, _ = mpp_field(X, Ir, X.unsqueeze(0), lambda_g)  # (B, M)
     T = max(1, int(tries))
     theta = (torch.arange(T, dtype=dtype, device=current.device) * (2 * math.pi / T)).expand(B, T).clone()
@@ -210,46 +279,56 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
     return MPPResult(R, yaw, best_cost.gather(1, k[:, None])[:, 0], it)
 
 
-def _mpp_fast(X: Tensor, Ic: Tensor, Ir: Tensor, R0: Tensor, a: Tensor, lambda_g: float, tries: int, max_iter: int,
+def _mpp_fast(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambda_g: float, tries: int, max_iter: int,
               tol: float, grid_height: int) -> MPPResult:
-    """The Gauss-Newton loop of :func:`mpp_yaw` with cached kernels and fewer ops per iteration."""
+    """The Gauss-Newton loop of :func:`mpp_yaw` in ~35 ops per iteration (same arithmetic up to rounding).
+
+    ``R(theta) = E(theta) R0`` with ``E = I + sin K + (1 - cos) K^2`` (Rodrigues, ``K = [a]x``), so the rotated
+    centres ``p = X @ R`` and the Jacobian directions ``D = (X x a) @ R`` (``J = grad . D``) are
+    ``P0 + sin P1 + (1 - cos) P2`` with ``P0..P2`` computed once: per iteration one ``(B, T, 3) x (B, 3, 6N)``
+    product gives all starts' points and directions as component rows (contiguous reads)."""
     B, dtype, dev = Ic.shape[0], Ic.dtype, Ic.device
-    G_ref = mpp_vertex_field(X, Ir, lambda_g)  # (B, M)
     T = max(1, int(tries))
     theta = (torch.arange(T, dtype=dtype, device=dev) * (2 * math.pi / T)).expand(B, T).clone()
     theta = torch.remainder(theta + math.pi, 2 * math.pi) - math.pi
     best_cost = torch.full((B, T), float("inf"), dtype=dtype, device=dev)
     best_theta = theta.clone()
-    table = SphereImage(mpp_table(X, Ic, lambda_g, grid_height)) if grid_height > 0 else None
+    table = SphereImage(mpp_table_fast(X, Ic, lambda_g, grid_height))
     M = X.shape[0]
-    # R(theta) = E(theta) R0 with E = I + sin K + (1 - cos) K^2 (Rodrigues, K = [a]x), so the rotated centres
-    # p = X @ R and the Jacobian directions D = (X x a) @ R (J = grad . D = ((R grad) x s) . a) are
-    # P0 + sin P1 + (1 - cos) P2 with P0..P2 computed once: a few ops per iteration instead of a rotation.
     zero = torch.zeros_like(a[:, 0])
     K = torch.stack([zero, -a[:, 2], a[:, 1], a[:, 2], zero, -a[:, 0], -a[:, 1], a[:, 0], zero], -1).view(B, 3, 3)
     KR0, K2R0 = K @ R0, K @ (K @ R0)
     XC = torch.cat([X.expand(B, M, 3), torch.linalg.cross(X.unsqueeze(0), a[:, None, :], dim=-1)], 1)  # (B, 2M, 3)
-    P0, P1, P2 = ((XC @ m).unsqueeze(1) for m in (R0, KR0, K2R0))  # (B, 1, 2M, 3)
+    # (B, 3, 6M): for each of P0, P1, P2 the x, y, z rows of p, then those of D
+    basis = torch.stack([(XC @ m).view(B, 2, M, 3).permute(0, 1, 3, 2) for m in (R0, KR0, K2R0)], 1)
+    basis = basis.reshape(B, 3, 6 * M)
+    G_ref = G_ref.unsqueeze(1)  # (B, 1, M)
+    # buffers written in place every iteration, and their views, made once (a view costs as much as a small op)
+    k = torch.ones(B, T, 3, dtype=dtype, device=dev)  # [1, sin theta, 1 - cos theta] per start
+    k_sin, k_cos = k[..., 1], k[..., 2]
+    pd = torch.empty(B, T, 6 * M, dtype=dtype, device=dev)  # components of p (x, y, z rows), then of D
+    p_xyz = pd.view(B, T, 2, 3, M)[:, :, 0].unbind(2)  # (B, T, M) each
+    D = pd.view(B, T, 2, 3, M)[:, :, 1].transpose(1, 2)  # (B, 3, T, M)
+    je = torch.empty(B * T, 2, M, dtype=dtype, device=dev)  # rows J, e per start
+    J_out, e_out = je.view(B, T, 2, M).unbind(2)
+    S = torch.empty(B * T, 2, 2, dtype=dtype, device=dev)
+    JJ, Je, _, ee = S.view(B, T, 4).unbind(-1)  # J.J, J.e, e.J, e.e
+    jeT = je.transpose(1, 2)
     it = 0
     for it in range(1, max_iter + 1):
-        pd = P0 + torch.sin(theta)[..., None, None] * P1 + (1 - torch.cos(theta))[..., None, None] * P2
-        p, D = pd[:, :, :M], pd[:, :, M:]  # (B, T, M, 3) each
-        if table is None:
-            G, grad = mpp_field(X, Ic, p, lambda_g, with_grad=True)  # (B, T, M), (B, T, M, 3)
-            J = (grad * D).sum(-1)
-        else:
-            v = table.read(p.reshape(B, T * M, 3)).view(B, 4, T, M)
-            G = v[:, 0]
-            J = (v[:, 1:] * D.permute(0, 3, 1, 2)).sum(1)  # (B, T, M)
-        e = G - G_ref.unsqueeze(1)
-        cost = (e * e).sum(-1)
-        better = cost < best_cost
-        best_cost = torch.where(better, cost, best_cost)
+        torch.sin(theta, out=k_sin)
+        torch.cos(theta, out=k_cos).neg_().add_(1.0)  # 1 - cos, exactly
+        torch.bmm(k, basis, out=pd)
+        v = table.read_grid(*p_xyz).view(B, 4, T, M)
+        torch.sum(v[:, 1:] * D, 1, out=J_out)  # J = grad . D
+        torch.sub(v[:, 0], G_ref, out=e_out)  # e = G - G_ref
+        torch.bmm(je, jeT, out=S)
+        better = ee < best_cost
+        best_cost = torch.where(better, ee, best_cost)
         best_theta = torch.where(better, theta, best_theta)
-        step = -(J * e).sum(-1) / (J * J).sum(-1).clamp_min(1e-30)
-        step = step.clamp(-0.5, 0.5)  # at most ~29° per iteration
-        theta = theta + step
-        if bool((step.abs() < tol).all()):
+        q = (Je / JJ.clamp_min(1e-30)).clamp_(-0.5, 0.5)  # = -step, at most ~29°
+        theta = theta - q
+        if bool(q.abs().max() < tol):
             break
     k = best_cost.argmin(-1)
     yaw = best_theta.gather(1, k[:, None])[:, 0]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -27,8 +27,9 @@ from omnidl.geometry.panorama import rotate_panorama
 from omnidl.geometry.rotations import matrix_to_euler, tilt_rotation, up_vector
 from omnidl.nn.threads import limit_threads
 
-from .mpp import mpp_samples, mpp_yaw
-from .pvg import pvg_refine
+from .icosahedron import icosahedron_vertices
+from .mpp import mpp_samples, mpp_vertex_field, mpp_yaw
+from .pvg import pvg_reference_values, pvg_refine
 
 HorizonFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 
@@ -64,8 +65,9 @@ def model_horizon_fn(model: torch.nn.Module, height: int = 128, threads: int | s
     is thousands of short ops: measured 12x more CPU time on 2 threads than on 1 under load)."""
     def fn(images: Tensor) -> tuple[Tensor, Tensor]:
         p = next(model.parameters())
-        x = F.interpolate(images.to(p.dtype).to(p.device), size=(height, 2 * height), mode="bilinear",
-                          align_corners=False, antialias=True)
+        x = images.to(dtype=p.dtype, device=p.device)
+        if tuple(x.shape[-2:]) != (height, 2 * height):  # at the same size the resampling is the identity
+            x = F.interpolate(x, size=(height, 2 * height), mode="bilinear", align_corners=False, antialias=True)
         was = model.training
         model.eval()
         with torch.no_grad(), limit_threads(threads):
@@ -100,12 +102,19 @@ class Gyroscope:
     # -- steps ---------------------------------------------------------------------------------
     def up_vectors(self, images: Tensor) -> tuple[Tensor, Tensor]:
         """``(B, 3)`` up vectors (camera frame) and ``(B,)`` validity of ``images (B, 3, H, W)``."""
+        return self._fit(images, self._maps(images))
+
+    def _maps(self, images: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The horizon maps of ``images`` (``None`` without a ``horizon_fn``)."""
+        return None if self.horizon_fn is None else self.horizon_fn(images)
+
+    def _fit(self, images: Tensor, maps: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor]:
+        """:meth:`up_vectors` from the maps of :meth:`_maps`."""
         B = images.shape[0]
-        if self.horizon_fn is None:
+        if maps is None:
             return up_vector(images).expand(B, 3).clone(), torch.ones(B, dtype=torch.bool)
-        hl, vp = self.horizon_fn(images)
         with limit_threads(self.o.photometric_threads):
-            res = fit_horizon(hl, vp, self.hopts)
+            res = fit_horizon(*maps, self.hopts)
         return res["up"].to(images.dtype).cpu(), res["valid"].cpu()
 
     def set_reference(self, image: Tensor) -> None:
@@ -125,6 +134,11 @@ class Gyroscope:
         self.ref_up = up[0]
         self.T_ref = tilt_rotation(self.ref_up)
         self.ref_mpp = mpp_samples(self.ref_work, self.o.mpp_level)[1] if self.o.use_mpp else None
+        # per-reference parts of the solvers, prepared once (their fast paths then never read the reference)
+        self.ref_mpp_field = mpp_vertex_field(icosahedron_vertices(self.o.mpp_level), self.ref_mpp, self.o.lambda_g) \
+            if self.o.use_mpp else None
+        self.ref_pvg = pvg_reference_values(self.ref_work, self.o.pvg_level, self.o.pvg_blur) \
+            if self.o.use_pvg else None
 
     def estimate(self, images: Tensor) -> dict[str, Tensor]:
         """Orientations of ``images (B, 3, H, W)`` (same size as the reference).
@@ -132,11 +146,49 @@ class Gyroscope:
         Returns ``{"rotation": (B, 3, 3) R_ref_cur, "roll", "pitch", "yaw": (B,) radians, "up": (B, 3),
         "horizon_valid": (B,) bool, "mpp_cost", "pvg_cost": (B,)}``.
         """
+        return self._photometric(*self._tilt(images))
+
+    def track(self, frames: Iterable[Tensor], threads: int = 1) -> Iterator[dict[str, Tensor]]:
+        """:meth:`estimate` of each of ``frames`` (``(B, 3, H, W)`` each, in order), pipelined: the horizon
+        network of frame ``k + 1`` (``horizon_fn``, in one worker thread) runs while this thread does the
+        rest of frame ``k`` (horizon fit, MPP, PVG). Each result is :meth:`estimate`'s for that frame run
+        with ``threads`` intra-op threads; on a machine with ``2 threads`` free CPUs the throughput is then
+        one frame per ``max(network, rest)`` instead of their sum (the latency of a frame is unchanged).
+
+        The process runs with ``threads`` intra-op threads (torch's setting is global) until the generator is
+        exhausted or closed; an exception of a frame is raised when its result is reached.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+        if self.reference is None:
+            raise RuntimeError("gyroscope: call set_reference(image) before track()")
+        it = iter(frames)
+        first = next(it, None)
+        if first is None:
+            return
+        before = torch.get_num_threads()
+        torch.set_num_threads(int(threads))
+        pool = ThreadPoolExecutor(1, initializer=torch.set_num_threads, initargs=(int(threads),))
+        try:
+            pending = pool.submit(self._tilt, first)
+            for frame in it:
+                tilt = pending.result()
+                pending = pool.submit(self._tilt, frame)
+                yield self._photometric(*tilt)
+            yield self._photometric(*pending.result())
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+            torch.set_num_threads(before)
+
+    def _tilt(self, images: Tensor) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor] | None]:
+        """The network part of :meth:`estimate`: ``(images, work images, horizon maps)``."""
         if self.reference is None:
             raise RuntimeError("gyroscope: call set_reference(image) before estimate()")
         images = images.float()
-        work = _resize(images, self.o.work_height)
-        up, ok = self.up_vectors(images)
+        return images, _resize(images, self.o.work_height), self._maps(images)
+
+    def _photometric(self, images: Tensor, work: Tensor, maps: tuple[Tensor, Tensor] | None) -> dict[str, Tensor]:
+        """The rest of :meth:`estimate` after :meth:`_tilt`: the horizon fit (step 1), MPP and PVG (steps 2-3)."""
+        up, ok = self._fit(images, maps)
         T_cur = tilt_rotation(up)
         R = self.T_ref.transpose(-1, -2) @ T_cur
         axis = self.T_ref[1, :]  # T_ref.T @ y: the reference's vertical
@@ -146,11 +198,12 @@ class Gyroscope:
         with limit_threads(self.o.photometric_threads):
             if self.o.use_mpp:
                 r = mpp_yaw(work, self.ref_work, R, axis, level=self.o.mpp_level, lambda_g=self.o.lambda_g,
-                            tries=self.o.mpp_tries, max_iter=self.o.mpp_max_iter, reference_samples=self.ref_mpp)
+                            tries=self.o.mpp_tries, max_iter=self.o.mpp_max_iter, reference_samples=self.ref_mpp,
+                            reference_field=self.ref_mpp_field)
                 R, mpp_cost = r.rotation, r.cost
             if self.o.use_pvg:
                 r = pvg_refine(work, self.ref_work, R, level=self.o.pvg_level, blur_px=self.o.pvg_blur,
-                               max_iter=self.o.pvg_max_iter)
+                               max_iter=self.o.pvg_max_iter, reference_values=self.ref_pvg)
                 R, pvg_cost = r.rotation, r.cost
         roll, pitch, yaw = matrix_to_euler(R)
         return {"rotation": R, "roll": roll, "pitch": pitch, "yaw": yaw, "up": up, "horizon_valid": ok,

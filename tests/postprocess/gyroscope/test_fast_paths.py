@@ -9,7 +9,8 @@ from omnidl.geometry.panorama import sample_panorama
 from omnidl.geometry.rotations import random_tilt_rotation
 from omnidl.postprocess.gyroscope.icosahedron import icosahedron_vertices
 from omnidl.postprocess.gyroscope.mpp import mpp_field, mpp_table, mpp_vertex_field, mpp_yaw
-from omnidl.postprocess.gyroscope.photometric import SphereImage, apply_update, rodrigues, yaw_rotations
+from omnidl.postprocess.gyroscope.photometric import (SphereImage, apply_update, rodrigues, rotation_jacobian,
+                                                      yaw_rotations)
 from omnidl.postprocess.gyroscope.pvg import pvg_refine, spherical_gradient, spherical_gradient_fast
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 from omnidl.nn.threads import limit_threads
@@ -170,3 +171,90 @@ def test_model_horizon_fn_thread_policy(monkeypatch):
         torch.set_num_threads(before)
     for a, b in zip(got, ref):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_read_xyz_reads_like_sample_panorama(dtype):
+    """Component-row reads (the solvers' layout), poles and near-poles included, batch 1 broadcast."""
+    g = torch.Generator().manual_seed(4)
+    img = procedural_panorama(None, 32, 64, seed=3).to(dtype).expand(2, -1, -1, -1)
+    d = torch.randn(2, 300, 3, generator=g, dtype=dtype)
+    poles = torch.tensor([[0, 1.0, 0], [0, -1.0, 0], [1e-17, 1, 0], [0, 0, -1], [-1e-7, 0, -1]], dtype=dtype)
+    d = torch.cat([d, poles[None].expand(2, -1, -1)], 1)
+    si = SphereImage(img)
+    expect = sample_panorama(img, d)
+    torch.testing.assert_close(si.read_xyz(*d.transpose(1, 2).unbind(1)), expect, rtol=0, atol=TOL[dtype])
+    no_pole = d[:1, :300].transpose(1, 2)  # (1, 3, M): broadcast over the image batch, the no-pole branch
+    torch.testing.assert_close(si.read_xyz(*no_pole.unbind(1)), sample_panorama(img, d[0, :300]), rtol=0,
+                               atol=TOL[dtype])
+    torch.testing.assert_close(si.read_grid(*no_pole.unbind(1))[:, :, 0], si.read_xyz(*no_pole.unbind(1)))
+    many = torch.randn(1, 20000, 3, generator=g, dtype=dtype)  # >= 16384 points: the pole check branch
+    for dd in (many, torch.cat([many, poles[None]], 1)):
+        torch.testing.assert_close(si.read_xyz(*dd.transpose(1, 2).unbind(1)), sample_panorama(img, dd[0]), rtol=0,
+                                   atol=TOL[dtype])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("sigma", [0.5, 1.5, 2.8, 4.0, 0.0])
+def test_blur_fast_matches_blur(dtype, sigma):
+    from omnidl.postprocess.gyroscope.photometric import blur, blur_fast
+    img = torch.rand(2, 1, 16, 32, generator=torch.Generator().manual_seed(5), dtype=dtype)
+    torch.testing.assert_close(blur_fast(img, sigma), blur(img, sigma), rtol=0, atol=TOL[dtype])
+    small = torch.rand(1, 1, 4, 8, generator=torch.Generator().manual_seed(6), dtype=dtype)  # radius > W:
+    for fn in (blur, blur_fast):  # blur_fast falls back to blur, which cannot wrap more than once
+        with pytest.raises(RuntimeError):
+            fn(small, 4.0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("height", [16, 15])  # 16: the octant kernels + 8 sign flips in float32; 15: no octant
+def test_mpp_table_fast_matches_mpp_table(dtype, height):
+    from omnidl.postprocess.gyroscope.mpp import _symmetric_kernels, mpp_table_fast
+    X = icosahedron_vertices(2, dtype)
+    I = torch.rand(3, X.shape[0], generator=torch.Generator().manual_seed(7), dtype=dtype)
+    I = I / I.sum(-1, keepdim=True)
+    expect = mpp_table(X, I, 0.325, height)
+    scale = expect.abs().max()
+    torch.testing.assert_close(mpp_table_fast(X, I, 0.325, height) / scale, expect / scale, rtol=0, atol=TOL[dtype])
+    assert (_symmetric_kernels(2, 0.325, height, torch.float32, "cpu") is None) == (height % 2 == 1)
+    Y = X.clone()[:-1]  # not an icosahedron: the exact evaluation, as mpp_table
+    assert torch.equal(mpp_table_fast(Y, I[:, :-1], 0.325, 16), mpp_table(Y, I[:, :-1], 0.325, 16))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pvg_terms_give_the_reference_jacobian(dtype):
+    """PVGTerms rows u with R u = (R grad) x X (the reference Jacobian) and e = I_cur(R.T X) - I_ref."""
+    from omnidl.postprocess.gyroscope.pvg import PVGTerms
+    R, ref, cur = _frames(dtype)
+    gray = cur.mean(1, keepdim=True)
+    X = icosahedron_vertices(3, dtype)
+    I_ref = torch.rand(1, X.shape[0], generator=torch.Generator().manual_seed(8), dtype=dtype)
+    out = PVGTerms(X, 2)(SphereImage(gray), R, I_ref).clone()
+    p = torch.einsum("bji,nj->bni", R, X)
+    v, grad = spherical_gradient(gray, p)
+    J = rotation_jacobian(grad, R, X)
+    torch.testing.assert_close((R @ out[:, :3]).transpose(1, 2), J, rtol=0, atol=100 * TOL[dtype])
+    torch.testing.assert_close(out[:, 3], v - I_ref, rtol=0, atol=TOL[dtype])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_prepared_references_match(dtype):
+    """pvg_reference_values / mpp_vertex_field prepared once give the results of the unprepared calls."""
+    from omnidl.postprocess.gyroscope.mpp import mpp_samples
+    from omnidl.postprocess.gyroscope.pvg import pvg_reference_values
+    from omnidl.postprocess.gyroscope.photometric import blur, to_gray
+    R, ref, cur = _frames(dtype)
+    vals = pvg_reference_values(ref, 3, (2.0, 0.5))
+    X = icosahedron_vertices(3, dtype)
+    for k, s in enumerate((2.0, 0.5)):
+        torch.testing.assert_close(vals[k], sample_panorama(blur(to_gray(ref), s), X)[:, 0], rtol=0, atol=TOL[dtype])
+    a = pvg_refine(cur, ref, R, level=3, max_iter=5, blur_px=(2.0, 0.5))
+    b = pvg_refine(cur, None, R, level=3, max_iter=5, blur_px=(2.0, 0.5), reference_values=vals)
+    assert torch.equal(a.rotation, b.rotation) and torch.equal(a.cost, b.cost)
+    with pytest.raises(ValueError, match="do not fit"):
+        pvg_refine(cur, None, R, level=3, blur_px=(1.0,), reference_values=vals)
+    Xm, Ir = mpp_samples(ref, 2)
+    field = mpp_vertex_field(Xm, Ir, 0.325)
+    c = mpp_yaw(cur, ref, R, level=2)
+    d = mpp_yaw(cur, None, R, level=2, reference_field=field)
+    assert torch.equal(c.rotation, d.rotation) and torch.equal(c.cost, d.cost)

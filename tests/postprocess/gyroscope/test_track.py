@@ -1,0 +1,59 @@
+"""Gyroscope.track: the tilt (horizon network + fit) of the next frame in a worker thread while the photometric
+steps of the current frame run; each result equals estimate() of that frame on the same thread count."""
+import math
+
+import pytest
+import torch
+
+from omnidl.data.horizon import horizon_heatmaps
+from omnidl.geometry.rotations import random_tilt_rotation
+from omnidl.models import create_model
+from omnidl.nn.threads import limit_threads
+from omnidl.postprocess.gyroscope.pipeline import Gyroscope, GyroscopeOptions, model_horizon_fn
+from omnidl.postprocess.gyroscope.scene import procedural_panorama
+
+OPTS = GyroscopeOptions(work_height=64, model_height=64, mpp_level=2, pvg_level=3, pvg_max_iter=5)
+
+
+def _gyro():
+    torch.manual_seed(0)
+    run_net = model_horizon_fn(create_model("holinet", backbone="resnet18", width=0.125, conv="standard"), 64)
+
+    def horizon_fn(images):  # the network runs in the worker; the maps are the upright ground truth (an
+        run_net(images)      # untrained net gives no horizon)
+        return tuple(m.expand(images.shape[0], -1, -1, -1) for m in horizon_heatmaps(torch.eye(3)[None], 32, 64))
+    g = Gyroscope(horizon_fn, OPTS)
+    g.set_reference(procedural_panorama(None, 64, 128, seed=1)[0])
+    R = random_tilt_rotation(3, math.radians(20), generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    return g, [f[None] for f in procedural_panorama(R, 64, 128, seed=1)]
+
+
+def test_track_equals_estimate_frame_by_frame():
+    g, frames = _gyro()
+    before = torch.get_num_threads()
+    with limit_threads(1):
+        expect = [g.estimate(f) for f in frames]
+    got = list(g.track(iter(frames)))
+    assert torch.get_num_threads() == before
+    assert len(got) == len(frames)
+    for a, b in zip(got, expect):
+        assert a.keys() == b.keys()
+        for k in a:
+            assert torch.equal(a[k], b[k]), k
+
+
+def test_track_edge_cases():
+    g, frames = _gyro()
+    before = torch.get_num_threads()
+    assert list(g.track([])) == []
+    gen = g.track(frames)
+    next(gen)
+    gen.close()  # stopping early restores the thread setting
+    assert torch.get_num_threads() == before
+    with pytest.raises(ValueError):  # a bad frame raises when its result is reached, the earlier ones come out
+        out = []
+        for r in g.track([frames[0], torch.rand(1, 2, 64, 128)]):
+            out.append(r)
+    assert len(out) == 1 and torch.get_num_threads() == before
+    with pytest.raises(RuntimeError, match="set_reference"):
+        next(Gyroscope(None, OPTS).track(frames))
