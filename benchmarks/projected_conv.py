@@ -2,12 +2,16 @@
 
     python benchmarks/projected_conv.py [--threads 2] [--reps 5] [--configs 64x128x256 256x64x128]
                                         [--batch 1] [--deform-reps 1] [--skip-deform] [--skip-resnet50]
+                                        [--breakdown]
 
 Per config ``CxHxW`` (equirectangular camera of the input size, 3x3, stride 1, padding 1, float32): forward
 (``no_grad``) and forward+backward (input and weight require grad) of
 
 * ``conv2d`` / ``conv2d_cl``: ``nn.Conv2d`` on NCHW / channels-last input (the baselines of the targets);
-* ``fast`` / ``fast_cl``: ``ProjectedConv2d(backend="fast")`` on the same inputs;
+* ``fast`` / ``fast_cl``: ``ProjectedConv2d(backend="fast")`` on the same inputs (on CPU float32 the forward
+  convolves tiles of gathered taps with oneDNN, :mod:`omnidl.nn.tiled`);
+* ``columns`` / ``columns_cl``: the same layer on the column GEMM path (the previous fast backend, selected by
+  an explicit ``chunk_positions``), so every run shows what the tiled forward gains;
 * ``deform``: ``torchvision.ops.deform_conv2d`` called directly with the layer's offsets and mask on an
   input circularly pre-padded by one kernel radius, with the column of every sample taken modulo ``W``
   (:func:`omnidl.nn.sampling.deform_conv2d_circular`): wrap-correct, the same output size as the layer (the
@@ -34,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._timing import interleaved, is_loaded, load_line, ratio, target_line  # noqa: E402
 from omnidl.cameras import Equirectangular  # noqa: E402
 from omnidl.nn import ProjectedConv2d, clear_plan_cache, plan_cache_info  # noqa: E402
-from omnidl.nn.sampling import circular_offsets, deform_conv2d_circular  # noqa: E402
+from omnidl.nn.sampling import CHUNK_BYTES, circular_offsets, deform_conv2d_circular  # noqa: E402
 
 TARGETS = {64: (1.3, 1.5), 256: (1.1, 1.2)}  # channels -> (fwd, fwd+bwd) max ratio to conv2d
 
@@ -77,13 +81,18 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
     fast = ProjectedConv2d(C, C, 3, padding=1, camera=cam, backend="fast")
     conv = torch.nn.Conv2d(C, C, 3, padding=1)
     conv.load_state_dict(fast.state_dict())
+    # the previous implementation: the column GEMM path (an explicit chunk length selects it)
+    plan_positions = max(16, CHUNK_BYTES // (9 * C * 4))
+    cols = ProjectedConv2d(C, C, 3, padding=1, camera=cam, backend="fast", chunk_positions=plan_positions)
+    cols.load_state_dict(fast.state_dict())
     t0 = time.perf_counter()
     fast(torch.zeros(1, C, H, W))
     build_ms = (time.perf_counter() - t0) * 1e3
     x = torch.randn(batch, C, H, W)
     xcl = x.contiguous(memory_format=torch.channels_last)
     jobs = {}
-    for name, m, inp in (("conv2d", conv, x), ("fast", fast, x), ("conv2d_cl", conv, xcl), ("fast_cl", fast, xcl)):
+    for name, m, inp in (("conv2d", conv, x), ("fast", fast, x), ("conv2d_cl", conv, xcl), ("fast_cl", fast, xcl),
+                         ("columns", cols, x), ("columns_cl", cols, xcl)):
         f, fb = _jobs(m, inp, inp.clone().requires_grad_(True))
         jobs[name + " fwd"], jobs[name + " fwd+bwd"] = f, fb
     check = None
@@ -104,7 +113,7 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
     print(load_line(threads))
     print("| variant | fwd ms (median / min) | fwd+bwd ms (median / min) | fwd / base | fwd+bwd / base |")
     print("|---|---|---|---|---|")
-    for n in ("conv2d", "fast", "conv2d_cl", "fast_cl", "deform"):
+    for n in ("conv2d", "fast", "conv2d_cl", "fast_cl", "columns", "columns_cl", "deform"):
         if n + " fwd" not in times:
             continue
         base = "conv2d_cl" if n.endswith("_cl") else "conv2d"
@@ -127,6 +136,11 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
         print(target_line(f"ProjectedConv2d {what} {C}ch {H}x{W} B{batch}", f"{med[fn + ' ' + what]:.1f} ms ({fn})",
                           r, f"the faster nn.Conv2d ({bn}, {med[bn + ' ' + what]:.1f} ms)",
                           None if t is None else f"<= {t}x", None if t is None else r <= t, loaded))
+    for what in ("fwd", "fwd+bwd"):
+        best = {n: min(med[f"{n} {what}"], med[f"{n}_cl {what}"]) for n in ("fast", "columns")}
+        res[f"columns_vs_fast_{what}"] = best["columns"] / best["fast"]
+        print(f"column GEMM path (the previous fast backend) / fast {what}, faster layouts: "
+              f"{res[f'columns_vs_fast_{what}']:.2f}x ({best['columns']:.1f} vs {best['fast']:.1f} ms)")
     if "deform fwd" in times:
         for what in ("fwd", "fwd+bwd"):
             r = med[f"deform {what}"] / med[f"fast {what}"]
@@ -134,6 +148,69 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
             print(f"deform_conv2d (circular pre-pad, same output) / fast {what}: {r:.1f}x "
                   f"({med['deform ' + what]:.0f} vs {med['fast ' + what]:.1f} ms, {len(times['deform ' + what])} rep)")
     return res
+
+
+def breakdown(C: int, H: int, W: int, reps: int) -> dict:
+    """Where the tiled forward's time goes, one thread, per image: the gather of every tap (all tiles), the
+    oneDNN convolution of the tiles, the copy into the output, against the dense ``nn.Conv2d`` (channels-last)
+    with the same FLOPs. ``dense conv + gather`` is the issue's limit; the tile convolution differs from the
+    dense one only in reading each tap from memory instead of re-using input pixels from cache."""
+    from omnidl.nn.projected_conv import get_plan
+    from omnidl.nn.sampling import _rows
+    from omnidl.nn.tiled import _tile, tile_rows, tiled_plan
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(0)
+        cam = Equirectangular(width=W, height=H)
+        layer = ProjectedConv2d(C, C, 3, padding=1, camera=cam)
+        conv = torch.nn.Conv2d(C, C, 3, padding=1)
+        x = torch.randn(1, C, H, W).contiguous(memory_format=torch.channels_last)
+        plan = get_plan(layer.geometry_key((H, W)), x.device, x.dtype)
+        tp = tiled_plan(plan)
+        Wo = plan.out_hw[1]
+        rows = tile_rows(plan, C, 4, weight_numel=C * C * 9)
+        spans = [(s, e) for s, e, *_ in tp.chunks(rows * Wo)]
+        xr = _rows(x)[0]
+        w = layer.weight.detach()
+        tiles = [_tile(tp, xr, s, e) for s, e in spans]
+        outs = [torch.nn.functional.conv2d(t, w, None, stride=(3, 3)) for t in tiles]
+        result = torch.empty(1, C, H, W, memory_format=torch.channels_last)
+
+        def gather():
+            for s, e in spans:
+                _tile(tp, xr, s, e)
+
+        def tconv():
+            for t in tiles:
+                torch.nn.functional.conv2d(t, w, None, stride=(3, 3))
+
+        def copy():
+            for (s, e), y in zip(spans, outs):
+                result[0, :, s // Wo:e // Wo].copy_(y[0])
+        with torch.no_grad():
+            jobs = {"dense conv2d": lambda: conv(x), "layer": lambda: layer(x), "gather": gather,
+                    "tile conv": tconv, "copy": copy}
+            times = {k: [] for k in jobs}
+            for fn in jobs.values():
+                fn()
+            for r in range(reps):
+                for k, fn in (jobs.items() if r % 2 == 0 else list(jobs.items())[::-1]):
+                    t0 = time.thread_time()
+                    fn()
+                    times[k].append(time.thread_time() - t0)
+    finally:
+        torch.set_num_threads(threads)
+    med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
+    d = med["dense conv2d"]
+    print(f"\n## forward breakdown, C={C} {H}x{W}, 1 thread, CPU ms per image ({rows} output rows per tile); "
+          f"{load_line(1)[2:]}")
+    for k, v in med.items():
+        print(f"{k}: {v:.1f} ms = {v / d:.2f}x dense conv2d")
+    print(f"dense conv2d + gather (the limit named by the issue) = {(d + med['gather']) / d:.2f}x; tile conv + gather "
+          f"+ copy = {(med['tile conv'] + med['gather'] + med['copy']) / d:.2f}x; the layer = {med['layer'] / d:.2f}x")
+    return med
 
 
 def resnet50_check(height: int = 128, width: int = 256, threads: int = 2, reps: int = 3) -> None:
@@ -175,6 +252,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--skip-deform", action="store_true", help="leave out deform_conv2d (slow)")
     ap.add_argument("--skip-resnet50", action="store_true", help="leave out the converted resnet50 check")
+    ap.add_argument("--breakdown", action="store_true", help="also print where the forward's time goes (1 thread)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     print(f"# ProjectedConv2d benchmark, float32, CPU, {a.threads} threads, median of {a.reps} interleaved reps")
@@ -182,6 +260,8 @@ def main(argv: list[str] | None = None) -> None:
     for cfg in a.configs:
         C, H, W = (int(v) for v in cfg.lower().split("x"))
         run_config(C, H, W, a.batch, a.reps, a.threads, a.deform_reps, a.skip_deform)
+        if a.breakdown:
+            breakdown(C, H, W, max(a.reps, 5))
     if not a.skip_resnet50:
         resnet50_check(threads=a.threads)
 

@@ -8,6 +8,7 @@ from omnidl.cameras import Equirectangular, get_camera_class
 from omnidl.nn import ProjectedConv2d, build_plan, deform_conv2d_reference, fixed_offset_conv2d
 from omnidl.nn.projected_conv import get_plan
 from omnidl.nn.sampling import _FixedOffsetConv
+from omnidl.nn import tiled as tiled_module
 from omnidl.nn.tiled import _TiledConv, tile_rows, tiled_conv2d, tiled_plan, tiled_supported
 
 TOL = 1e-5
@@ -25,7 +26,9 @@ def _camera(name: str):
 @pytest.mark.parametrize("camera", ["equirect", "kannala_brandt", "scaramuzza"])
 @pytest.mark.parametrize("k,s,d", [(3, 1, 1), (3, 2, 1), (5, 1, 2), (7, 2, 1), (2, 1, 1)])
 @pytest.mark.parametrize("channels_last", [False, True])
-def test_tiled_equals_columns_and_deform_conv2d(camera, k, s, d, channels_last):
+@pytest.mark.parametrize("backward", ["tiles", "columns"])
+def test_tiled_equals_columns_and_deform_conv2d(camera, k, s, d, channels_last, backward, monkeypatch):
+    monkeypatch.setattr(tiled_module, "BACKWARD", backward)
     torch.manual_seed(k * 10 + s + d)
     cam = _camera(camera)
     H, W = (12, 24) if cam.width >= 2 * cam.height else (14, 14)
@@ -87,6 +90,8 @@ def test_tile_rows_targets_a_few_megabytes_and_stays_in_range():
     assert 1 <= tile_rows(plan, 64, 4) <= 128
     assert tile_rows(plan, 100_000, 4) == 1
     assert tile_rows(plan, 1, 4) == 128
+    # a wide layer's weight (re-laid out by oneDNN on every call) is amortised over taller tiles
+    assert tile_rows(plan, 256, 4, weight_numel=256 * 256 * 9) > tile_rows(plan, 256, 4)
 
 
 def test_layer_dispatch():
@@ -105,15 +110,17 @@ def test_layer_dispatch():
     assert seen[1].startswith(_FixedOffsetConv.__name__) and seen[2].startswith(_FixedOffsetConv.__name__)
 
 
-def test_tiled_backward_is_the_column_backward_in_float64_precision():
-    """Gradients of the tiled forward come from the column path: checked against deform_conv2d at 1e-12 by
-    running the tiled forward's context through float64 inputs of the column path (same plan, same chunks)."""
+@pytest.mark.parametrize("backward", ["tiles", "columns"])
+def test_tiled_path_in_float64_equals_deform_conv2d(backward, monkeypatch):
+    """The tile layout is dtype-agnostic: run in float64 (slow non-oneDNN kernels) the tiled forward and both
+    backward modes equal deform_conv2d at 1e-12, batch 2, tiles of 3 rows (the last one shorter)."""
+    monkeypatch.setattr(tiled_module, "BACKWARD", backward)
     cam = Equirectangular(width=32, height=16)
     m = ProjectedConv2d(3, 4, 3, padding=1, camera=cam).double()
     off, mask = m.offsets((8, 16))
     plan = build_plan(off, mask, (8, 16), (3, 3), (1, 1), (1, 1), (1, 1), wrap=True)
     x = torch.randn(2, 3, 8, 16, dtype=torch.float64, requires_grad=True)
-    y = _TiledConv.apply(x, m.weight, m.bias, plan, 3)  # the tile layout is dtype-agnostic (slow f64 conv)
+    y = _TiledConv.apply(x, m.weight, m.bias, plan, 3)
     y_ref = deform_conv2d_reference(x, m.weight, m.bias, off, mask, (1, 1), (1, 1), (1, 1), wrap=True)
     assert (y - y_ref).abs().max() < 1e-12
     g = torch.randn_like(y)
