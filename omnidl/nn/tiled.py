@@ -11,17 +11,19 @@ Backward: the input gradient is a transposed convolution of each chunk's output 
 scattered back through the chunk's CSR transpose of the tiled plan; the weight gradient is the column GEMM on
 recomputed columns. Nothing but the input is kept between forward and backward.
 
-Threads: unlike the column path (many small ops per chunk, run on single-threaded workers), each tile is a
-handful of large ops, so they run on the calling thread with torch's intra-op threads (measured faster here:
-64 channels 128x256 forward 25 vs 33 ms on 2 threads).
+Threads: each tile is a handful of large ops, so on an idle machine they run on the calling thread with torch's
+intra-op threads (measured faster here than the column path's worker pool: 64 channels 128x256 forward 25 vs
+33 ms on 2 threads); when the CPUs are oversubscribed every intra-op fork/join waits for a descheduled thread,
+so the tiles then go to the worker pool (one join per call), see :func:`_run`.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-from .sampling import (SamplingPlan, _FixedOffsetConv, _gather, _is_channels_last, _rows, chunk_positions,
-                       save_columns_context)
+from .sampling import (SamplingPlan, _FixedOffsetConv, _gather, _is_channels_last, _rows, _run_split,
+                       chunk_positions, save_columns_context)
+from .threads import auto_threads
 
 #: target size (bytes) of one gathered tile: oneDNN's stride-k convolution ran fastest with tiles of a few
 #: MB here (1-row tiles of 64 channels were 35 % slower, 16-row tiles of 64 channels 35 % slower)
@@ -71,6 +73,16 @@ def _tile(tp: SamplingPlan, xb: Tensor, s: int, e: int) -> Tensor:
     return _gather(tp, xb, s, e).view(1, (e - s) // Wo * kh, Wo * kw, C).permute(0, 3, 1, 2)
 
 
+def _run(fn, tasks: list, device: torch.device) -> list:
+    """``fn`` over ``tasks``: in one call on this thread (intra-op threads inside each large op) while every
+    intra-op thread has a free CPU; split among the column path's single-threaded workers (one join per layer
+    call instead of one per op) when the CPUs are oversubscribed (:func:`omnidl.nn.threads.auto_threads`)."""
+    n = torch.get_num_threads()
+    if n > 1 and auto_threads() < n:
+        return _run_split(tasks, fn, device)
+    return [fn(tasks)]
+
+
 class _TiledConv(_FixedOffsetConv):
     """Forward by tiles. Backward: :data:`BACKWARD` (the column GEMM of the weight gradient ran 2x faster here
     than oneDNN's stride-k weight gradient, so both modes keep it)."""
@@ -89,10 +101,12 @@ class _TiledConv(_FixedOffsetConv):
         b_ = None if bias is None else bias.detach()
         fmt = torch.channels_last if channels_last else torch.contiguous_format
         result = torch.empty(B, Cout, Ho, Wo, dtype=x.dtype, device=x.device, memory_format=fmt)
-        for b in range(B):
-            for s, e, *_ in tp.chunks(rows * Wo):
+
+        def work(part: list) -> None:
+            for b, s, e in part:
                 y = torch.nn.functional.conv2d(_tile(tp, xr[b], s, e), w, b_, stride=(kh, kw))
                 result[b, :, s // Wo:e // Wo].copy_(y[0])
+        _run(work, [(b, s, e) for b in range(B) for s, e, *_ in tp.chunks(rows * Wo)], x.device)
         save_columns_context(ctx, x, weight, bias, plan, chunk_positions(plan, C, x.element_size()), xr)
         ctx.weight = w
         ctx.bwd_rows = tile_rows(plan, C, x.element_size(), BWD_TILE_BYTES, weight.numel())
@@ -112,15 +126,27 @@ class _TiledConv(_FixedOffsetConv):
         kh, kw = plan.kernel_size
         Wo = plan.out_hw[1]
         need_x, need_w, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
-        gx = torch.zeros(B, H * W, C, dtype=grad_out.dtype, device=grad_out.device) if need_x else None
-        gwm = torch.zeros(kh * kw * C, Cout, dtype=grad_out.dtype, device=grad_out.device) if need_w else None
-        for b, (s, e, lo, hi, st) in ((b, c) for b in range(B) for c in tp.chunks(ctx.bwd_rows * Wo)):
-            gy = grad_out[b:b + 1, :, s // Wo:e // Wo].contiguous(memory_format=torch.channels_last)
-            if need_w:  # columns in (position, tap) order against the (P_c, Cout) gradient rows
-                gwm.addmm_(_gather(plan, xr[b], s, e).t(), gy[0].permute(1, 2, 0).reshape(e - s, Cout))
-            if need_x:  # tile gradient (transposed convolution), scattered through the tiled transpose
-                gt = torch.nn.functional.conv_transpose2d(gy, w, stride=(kh, kw))
-                gx[b, lo:hi].addmm_(st, gt[0].permute(1, 2, 0).reshape(-1, C))
+
+        def work(part: list) -> tuple[Tensor | None, Tensor | None]:
+            # private accumulators per part: input bands of neighbouring chunks overlap
+            gx = torch.zeros(B, H * W, C, dtype=grad_out.dtype, device=grad_out.device) if need_x else None
+            gwm = torch.zeros(kh * kw * C, Cout, dtype=grad_out.dtype, device=grad_out.device) if need_w else None
+            for b, s, e, lo, hi, st in part:
+                gy = grad_out[b:b + 1, :, s // Wo:e // Wo].contiguous(memory_format=torch.channels_last)
+                if need_w:  # columns in (position, tap) order against the (P_c, Cout) gradient rows
+                    gwm.addmm_(_gather(plan, xr[b], s, e).t(), gy[0].permute(1, 2, 0).reshape(e - s, Cout))
+                if need_x:  # tile gradient (transposed convolution), scattered through the tiled transpose
+                    gt = torch.nn.functional.conv_transpose2d(gy, w, stride=(kh, kw))
+                    gx[b, lo:hi].addmm_(st, gt[0].permute(1, 2, 0).reshape(-1, C))
+            return gx, gwm
+
+        parts = _run(work, [(b, *c) for b in range(B) for c in tp.chunks(ctx.bwd_rows * Wo)], grad_out.device)
+        gx, gwm = parts[0]
+        for px, pw in parts[1:]:
+            if need_x:
+                gx += px
+            if need_w:
+                gwm += pw
         gw = gb = None
         if need_x:
             gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
