@@ -41,6 +41,7 @@ from omnidl.nn.conv_switch import conv_choice
 from omnidl.nn.wconv import ConvNormAct, WConv
 
 from ._backbone import ResNetFeatures
+from ._memory_format import ChannelsLast, MemoryFormatPolicy, check_policy
 from .registry import register_model
 
 #: widths of the public model (ResNet-50, width 1)
@@ -132,7 +133,7 @@ class FusionHead(nn.Module):
         return self.out.act(self.out.norm(y))
 
 
-class FreDSNet(nn.Module):
+class FreDSNet(MemoryFormatPolicy, nn.Module):
     """FreDSNet (see the module docstring). ``forward(image (B,3,H,W) in [0,1])`` returns
     ``{"depth": (B,1,H,W) >= 0 metres, "semantic": (B,num_classes,H,W) logits}``.
 
@@ -159,8 +160,9 @@ class FreDSNet(nn.Module):
         depth_bias_init: initial bias (metres) of the depth output conv, so that the final ReLU starts
             active on most pixels (a dead ReLU output never learns); the public code uses the default init.
         channels_last: run the network in ``torch.channels_last`` memory format (weights and activations;
-            outputs are returned contiguous). On CPU (oneDNN) this avoids per-call layout conversions of the
-            large 3x3 weights and is several times faster; results are the same up to float rounding.
+            outputs are returned contiguous): ``True``, ``False`` or ``"auto"`` (default: channels-last in eval
+            mode, and in training only with ProjectedConv2d layers; dense convolutions train faster in NCHW on
+            CPU, see :mod:`omnidl.models._memory_format`). Results are the same up to float rounding.
     """
 
     stride = 32
@@ -171,7 +173,7 @@ class FreDSNet(nn.Module):
                  encoder_dropout: float = 0.4, head_width: int = HEAD_WIDTH, fft_norm: str = "backward",
                  spectrum_layout: str = "width", semantic_bn_relu: bool = False,
                  outputs: Sequence[str] = ("depth", "semantic"), depth_bias_init: float = 1.0,
-                 channels_last: bool = True) -> None:
+                 channels_last: ChannelsLast = "auto") -> None:
         super().__init__()
         conv = conv_choice(conv, "FreDSNet")
         if not width > 0:
@@ -219,9 +221,8 @@ class FreDSNet(nn.Module):
                                         out_camera=hc["camera"]) if "semantic" in outputs else None
         if self.depth_head is not None:
             nn.init.constant_(self.depth_head.out.conv.bias, float(depth_bias_init))
-        self.channels_last = bool(channels_last)
-        if self.channels_last:
-            self.to(memory_format=torch.channels_last)
+        self.channels_last = check_policy(channels_last, "FreDSNet")
+        self.apply_memory_format()
 
     def check_input(self, x: Tensor) -> None:
         """Raise a ``ValueError`` unless ``x`` is ``(B, 3, H, W)`` with ``H, W`` multiples of 32."""
@@ -236,8 +237,7 @@ class FreDSNet(nn.Module):
     def decode_features(self, x: Tensor) -> list[Tensor]:
         """The six decoder maps ``[d1 (1/32), d2 (1/16), d3 (1/8), d4 (1/4), d5 (1/2), d6 (1/1)]``."""
         self.check_input(x)
-        if self.channels_last:
-            x = x.contiguous(memory_format=torch.channels_last)
+        x = self.to_model_format(x)
         feats = [lat(f) for lat, f in zip(self.lateral, self.backbone(x))]
         skips = []
         flow = feats[0]

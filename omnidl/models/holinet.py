@@ -39,6 +39,7 @@ from omnidl.cameras.resolve import resolve_camera
 from omnidl.nn.conv_switch import conv_choice
 
 from ._backbone import ResNetFeatures
+from ._memory_format import ChannelsLast, MemoryFormatPolicy, check_policy
 from .registry import register_model
 
 DECODER_WIDTHS = (512, 256, 128, 64, 64)
@@ -90,7 +91,7 @@ def _cat_wrap(parts: list[Tensor], pad: int, channels_last: bool) -> Tensor:
     return out
 
 
-class HoLiNet(nn.Module):
+class HoLiNet(MemoryFormatPolicy, nn.Module):
     """Horizon / vanishing-point heat-map network.
 
     Args:
@@ -101,12 +102,14 @@ class HoLiNet(nn.Module):
             deprecated aliases (:mod:`omnidl.nn.conv_switch`).
         camera: camera of the input image for ``conv="projected"`` (``Camera`` or config; default full equirect).
         channels_last: run in ``torch.channels_last`` memory format (weights and activations; outputs are
-            returned contiguous). On CPU the ProjectedConv2d fast backend then writes its outputs in place
-            and oneDNN skips layout conversions (no copies per layer); results equal up to float rounding.
+            returned contiguous): ``True``, ``False`` or ``"auto"`` (default: channels-last in eval mode, and in
+            training only with ProjectedConv2d layers, whose fast backend then writes its outputs in place;
+            dense convolutions train faster in NCHW, :mod:`omnidl.models._memory_format`). Results equal up
+            to float rounding.
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, width: float = 1.0,
-                 conv: str = "projected", camera: Any = None, channels_last: bool = True) -> None:
+                 conv: str = "projected", camera: Any = None, channels_last: ChannelsLast = "auto") -> None:
         super().__init__()
         conv = self.conv = conv_choice(conv, "HoLiNet")
         if width <= 0:
@@ -128,9 +131,8 @@ class HoLiNet(nn.Module):
             from omnidl.nn import convert_conv2d
             convert_conv2d(self, camera=resolve_camera(camera, default=Equirectangular(width=256, height=128),
                                                        allow_files=False))
-        self.channels_last = bool(channels_last)
-        if self.channels_last:
-            self.to(memory_format=torch.channels_last)
+        self.channels_last = check_policy(channels_last, "HoLiNet")
+        self.apply_memory_format()
         # decoder inputs of conv="standard": concatenation and longitude wrap written into one buffer
         # (:func:`_cat_wrap`); False = the modules' own torch.cat + F.pad (the reference, same values)
         self.fuse_wrap = True
@@ -139,7 +141,7 @@ class HoLiNet(nn.Module):
         """``block(torch.cat(parts, 1))``, with the wrap of a circular block fused into the concatenation."""
         wrap = block[0]
         if self.fuse_wrap and isinstance(wrap, _HorizontalWrap):
-            x = _cat_wrap(parts, wrap.pad, self.channels_last)
+            x = _cat_wrap(parts, wrap.pad, self.uses_channels_last)
             for m in list(block)[1:]:
                 x = m(x)
             return x
@@ -151,8 +153,7 @@ class HoLiNet(nn.Module):
             raise ValueError(f"HoLiNet expects (B, 3, H, W) RGB images, got shape {tuple(image.shape)}")
         if image.shape[-1] % 32 or image.shape[-2] % 32:
             raise ValueError(f"HoLiNet: input sides must be multiples of 32, got {tuple(image.shape[-2:])}")
-        if self.channels_last:
-            image = image.contiguous(memory_format=torch.channels_last)
+        image = self.to_model_format(image)
         f0, f1, f2, f3, f4 = self.encoder(image)
         blk = self._block
         x = _up(blk(self.dec32, [f4]))
