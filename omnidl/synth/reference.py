@@ -1,57 +1,30 @@
 """The renderer as it was before the issue 17 (item 5) speed work: the slow reference of :func:`render`.
 
-Kept verbatim (one module) so that tests can compare every output key of the fast renderer with it
+Kept verbatim (one module; the helpers that did not change are imported from the live modules) so that tests
+can compare every output key of the fast renderer with it
 (``tests/synth/test_render_reference.py``); nothing else should call it.
 """
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from omnidl.classes import CLASS_ID
 from omnidl.geometry.rotations import upright_rotation
 from omnidl.nn.threads import limit_threads
 
 from . import materials as M
 from .materials import CHECKER, NOISE, PANEL, PLAIN, STRIPES
 from .scene import Scene
+# helpers the speed work left unchanged (identical source, and everything they call is unchanged too)
+from .layout import CORNER_BASE, N_MAX, _ROUNDS, _SUBDIV, corner_visibility, corners_world, plucker  # noqa: F401
+from .raycast import _EPS, RoomHit, _walls_2d  # noqa: F401
+from .render import _box_groups, _surface_tables
+from .materials import _hash  # noqa: F401
 
 CEILING, WALL, FLOOR = 1, 2, 3
-_EPS = 1e-6
-
-
-class RoomHit(NamedTuple):
-    t: Tensor       # (P,) range along the ray
-    kind: Tensor    # (P,) int64: CEILING / WALL / FLOOR, 0 = no hit
-    wall: Tensor    # (P,) int64 wall index (valid where kind == WALL, else -1)
-    s: Tensor       # (P,) metres along the wall from its first vertex (WALL hits)
-
-
-def _walls_2d(ox: Tensor, oy: Tensor, dx: Tensor, dy: Tensor, polygon: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Nearest wall crossing of 2D rays (top view): range in units of ``|(dx, dy)|``, wall index, metres along it.
-
-    ``ox, oy``: ``(R,)`` or ``(1,)``; ``dx, dy``: ``(R,)``. A ray leaving a counter-clockwise room from the
-    inside crosses a wall from its front (``d . inward < 0``, i.e. ``cross(d, e) > 0``), which lets the
-    segment test run without divisions: ``0 <= cross(a - o, d) <= cross(d, e)``.
-    """
-    a = polygon                                     # (N, 2)
-    e = torch.roll(polygon, -1, 0) - polygon        # (N, 2)
-    length = e.norm(dim=-1)
-    rx = a[:, 0] - ox.reshape(-1, 1)                # (R or 1, N)
-    ry = a[:, 1] - oy.reshape(-1, 1)
-    dxx, dyy = dx.reshape(-1, 1), dy.reshape(-1, 1)
-    denom = dxx * e[:, 1] - dyy * e[:, 0]           # (R, N) = cross(d, e)
-    num_s = rx * dyy - ry * dxx                     # cross(a - o, d)
-    front = (denom > 1e-12) & (num_s >= 0) & (num_s <= denom)
-    t = (rx * e[:, 1] - ry * e[:, 0]) / torch.where(front, denom, torch.ones_like(denom))
-    t = t.masked_fill_(~front | (t <= _EPS), math.inf)
-    t_wall, wall = t.min(dim=1)
-    s_hit = (num_s.gather(1, wall[:, None])[:, 0] / denom.gather(1, wall[:, None])[:, 0].clamp_min(1e-12))
-    return t_wall, wall, s_hit.clamp(0, 1) * length[wall]
 
 
 def cast_room(origin: Tensor, direction: Tensor, polygon: Tensor, height: float,
@@ -236,13 +209,6 @@ def box_normals(points: Tensor, boxes: Tensor, box_id: Tensor) -> tuple[Tensor, 
     return normal, uv
 
 
-def _hash(i: Tensor, j: Tensor) -> Tensor:
-    """Deterministic pseudo-random value in ``[0, 1)`` per integer lattice cell (int64 tensors)."""
-    h = (i * 73856093) ^ (j * 19349663)
-    h = (h ^ (h >> 13)) * 1274126177
-    return torch.remainder(h, 1021).to(torch.float32) / 1021.0
-
-
 def texture_mix(texture: Tensor, scale: Tensor, su: Tensor, sv: Tensor, kinds: list[int] | None = None) -> Tensor:
     """Blend weight in ``[0, 1]`` between colour1 (0) and colour2 (1) per point.
 
@@ -276,53 +242,6 @@ def texture_mix(texture: Tensor, scale: Tensor, su: Tensor, sv: Tensor, kinds: l
                 val = torch.where(seam, torch.ones_like(val), val)
         w[idx] = val
     return w
-
-
-N_MAX = 14
-CORNER_BASE = 0.96
-_SUBDIV = 8
-_ROUNDS = 7
-
-
-def corners_world(scene: Scene) -> np.ndarray:
-    """``(N, 2, 3)``: ``[ceiling, floor]`` 3D corner points in layout order (world frame)."""
-    p = scene.polygon
-    n = len(p)
-    out = np.zeros((n, 2, 3))
-    out[:, :, :2] = p[:, None]
-    out[:, 0, 2] = scene.height
-    return out
-
-
-def plucker(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Plücker line ``(d, m = a x d)`` ``(..., 6)`` through points ``a`` and ``b`` (unit ``d``)."""
-    d = b - a
-    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    return np.concatenate([d, np.cross(a, d)], -1)
-
-
-def corner_visibility(scene: Scene, centre: np.ndarray) -> np.ndarray:
-    """``(N,)`` bool: the vertical edge at each corner is not hidden (in top view) by another wall,
-    seen from the camera centre (HorizonNet's occlusion notion; central approximation for rigs)."""
-    p = scene.polygon
-    n = len(p)
-    a, b = p, np.roll(p, -1, axis=0)
-    vis = np.ones(n, bool)
-    c = centre[:2]
-    for k in range(n):
-        q = p[k]
-        dvec = q - c
-        e = b - a
-        denom = dvec[0] * e[:, 1] - dvec[1] * e[:, 0]
-        ok = np.abs(denom) > 1e-12
-        denom = np.where(ok, denom, 1.0)
-        r = a - c
-        t = (r[:, 0] * e[:, 1] - r[:, 1] * e[:, 0]) / denom
-        s = (r[:, 0] * dvec[1] - r[:, 1] * dvec[0]) / denom
-        blocking = ok & (t > 1e-6) & (t < 1 - 1e-6) & (s > 1e-6) & (s < 1 - 1e-6)
-        blocking[[k, (k - 1) % n]] = False
-        vis[k] = not bool(blocking.any())
-    return vis
 
 
 def _room_kind(camera, pose_t: tuple[Tensor, Tensor], uv: Tensor, poly: Tensor, height: float) -> Tensor:
@@ -451,37 +370,6 @@ def world_rays(camera, pose: np.ndarray, dtype=torch.float32, device=None):
     else:
         o = torch.addmm(t[None], o_c, R.T)
     return o, d, valid
-
-
-def _box_groups(boxes: np.ndarray) -> list[Tensor]:
-    if len(boxes) == 0:
-        return []
-    inst = boxes[:, 8].astype(np.int64)
-    groups = []
-    for i in np.unique(inst):
-        groups.append(torch.as_tensor(np.nonzero(inst == i)[0], dtype=torch.int64))
-    return groups
-
-
-def _surface_tables(scene: Scene, dtype, device):
-    """Per-surface class, instance, material and (structural) normal tables.
-
-    Surface ids: walls ``0..N-1``, floor ``N``, ceiling ``N+1``, decals ``N+2..N+1+K``, boxes after that.
-    """
-    n, k = scene.num_walls, len(scene.decals)
-    poly = scene.polygon
-    e = np.roll(poly, -1, axis=0) - poly
-    inward = np.stack([-e[:, 1], e[:, 0], np.zeros(n)], 1) / np.linalg.norm(e, axis=1)[:, None]
-    normals = np.concatenate([inward, [[0, 0, 1.0], [0, 0, -1.0]],
-                              inward[scene.decals[:, 0].astype(np.int64)] if k else np.zeros((0, 3))])
-    sem = np.concatenate([np.full(n, CLASS_ID["wall"]), [CLASS_ID["floor"], CLASS_ID["ceiling"]],
-                          scene.decals[:, 5], scene.boxes[:, 7]]).astype(np.int64)
-    inst = np.concatenate([np.arange(1, n + 1), [scene.floor_instance, scene.ceiling_instance],
-                           scene.decals[:, 6], scene.boxes[:, 8]]).astype(np.int64)
-    mat = np.concatenate([scene.wall_material, [scene.floor_material, scene.ceiling_material],
-                          scene.decal_material, scene.box_material]).astype(np.int64)
-    as_t = lambda x, dt=torch.int64: torch.as_tensor(x, dtype=dt, device=device)  # noqa: E731
-    return as_t(sem), as_t(inst), as_t(mat), as_t(normals, dtype)
 
 
 def render_reference(scene: Scene, camera, pose: np.ndarray, layout: bool = True, dtype: torch.dtype = torch.float32,
