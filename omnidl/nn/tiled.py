@@ -11,10 +11,9 @@ Backward: the input gradient is a transposed convolution of each chunk's output 
 scattered back through the chunk's CSR transpose of the tiled plan; the weight gradient is the column GEMM on
 recomputed columns. Nothing but the input is kept between forward and backward.
 
-Threads: each tile is a handful of large ops, so on an idle machine they run on the calling thread with torch's
-intra-op threads (measured faster here than the column path's worker pool: 64 channels 128x256 forward 25 vs
-33 ms on 2 threads); when the CPUs are oversubscribed every intra-op fork/join waits for a descheduled thread,
-so the tiles then go to the worker pool (one join per call), see :func:`_run`.
+Threads: as the column path, the (image, tile) tasks are split among single-threaded workers, one join per
+call (measured here as fast as intra-op threads inside each tile's ops, or faster: 64 channels 128x256
+forward 30-33 vs 37-39 ms on 2 threads, and far steadier when another process competes for the cores).
 """
 from __future__ import annotations
 
@@ -23,7 +22,6 @@ from torch import Tensor
 
 from .sampling import (SamplingPlan, _FixedOffsetConv, _gather, _is_channels_last, _rows, _run_split,
                        chunk_positions, save_columns_context)
-from .threads import auto_threads
 
 #: target size (bytes) of one gathered tile: oneDNN's stride-k convolution ran fastest with tiles of a few
 #: MB here (1-row tiles of 64 channels were 35 % slower, 16-row tiles of 64 channels 35 % slower)
@@ -73,16 +71,6 @@ def _tile(tp: SamplingPlan, xb: Tensor, s: int, e: int) -> Tensor:
     return _gather(tp, xb, s, e).view(1, (e - s) // Wo * kh, Wo * kw, C).permute(0, 3, 1, 2)
 
 
-def _run(fn, tasks: list, device: torch.device) -> list:
-    """``fn`` over ``tasks``: in one call on this thread (intra-op threads inside each large op) while every
-    intra-op thread has a free CPU; split among the column path's single-threaded workers (one join per layer
-    call instead of one per op) when the CPUs are oversubscribed (:func:`omnidl.nn.threads.auto_threads`)."""
-    n = torch.get_num_threads()
-    if n > 1 and auto_threads() < n:
-        return _run_split(tasks, fn, device)
-    return [fn(tasks)]
-
-
 class _TiledConv(_FixedOffsetConv):
     """Forward by tiles. Backward: :data:`BACKWARD` (the column GEMM of the weight gradient ran 2x faster here
     than oneDNN's stride-k weight gradient, so both modes keep it)."""
@@ -106,7 +94,7 @@ class _TiledConv(_FixedOffsetConv):
             for b, s, e in part:
                 y = torch.nn.functional.conv2d(_tile(tp, xr[b], s, e), w, b_, stride=(kh, kw))
                 result[b, :, s // Wo:e // Wo].copy_(y[0])
-        _run(work, [(b, s, e) for b in range(B) for s, e, *_ in tp.chunks(rows * Wo)], x.device)
+        _run_split([(b, s, e) for b in range(B) for s, e, *_ in tp.chunks(rows * Wo)], work, x.device)
         save_columns_context(ctx, x, weight, bias, plan, chunk_positions(plan, C, x.element_size()), xr)
         ctx.weight = w
         ctx.bwd_rows = tile_rows(plan, C, x.element_size(), BWD_TILE_BYTES, weight.numel())
@@ -140,7 +128,7 @@ class _TiledConv(_FixedOffsetConv):
                     gx[b, lo:hi].addmm_(st, gt[0].permute(1, 2, 0).reshape(-1, C))
             return gx, gwm
 
-        parts = _run(work, [(b, *c) for b in range(B) for c in tp.chunks(ctx.bwd_rows * Wo)], grad_out.device)
+        parts = _run_split([(b, *c) for b in range(B) for c in tp.chunks(ctx.bwd_rows * Wo)], work, grad_out.device)
         gx, gwm = parts[0]
         for px, pw in parts[1:]:
             if need_x:
