@@ -94,7 +94,8 @@ class _TiledConv(_FixedOffsetConv):
             for b, s, e in part:
                 y = torch.nn.functional.conv2d(_tile(tp, xr[b], s, e), w, b_, stride=(kh, kw))
                 result[b, :, s // Wo:e // Wo].copy_(y[0])
-        _run_split([(b, s, e) for b in range(B) for s, e, *_ in tp.chunks(rows * Wo)], work, x.device)
+        P, n = Ho * Wo, rows * Wo  # the forward needs no chunk transposes: plain position ranges
+        _run_split([(b, s, min(P, s + n)) for b in range(B) for s in range(0, P, n)], work, x.device)
         save_columns_context(ctx, x, weight, bias, plan, chunk_positions(plan, C, x.element_size()), xr)
         ctx.weight = w
         ctx.bwd_rows = tile_rows(plan, C, x.element_size(), BWD_TILE_BYTES, weight.numel())
