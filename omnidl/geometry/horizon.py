@@ -27,6 +27,7 @@ horizon metric (:mod:`omnidl.metrics.rotation`) all call :func:`fit_horizon`.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -140,6 +141,14 @@ def _plane(dirs: Tensor, hl: Tensor, area: Tensor, g: Tensor, g_ok: bool, pix: f
     return n, True
 
 
+@functools.lru_cache(maxsize=8)
+def _sphere_grid(H: int, W: int, dtype: torch.dtype, device: str) -> tuple[Tensor, Tensor]:
+    """Pixel directions ``(H*W, 3)`` of a full ``H x W`` equirectangular map and their ``cos(latitude)``
+    ``(H*W,)`` (cached: a gyroscope fits every frame on the same grid; callers only read them)."""
+    dirs = Equirectangular(width=W, height=H).unproject_grid(dtype, device).direction.reshape(-1, 3)
+    return dirs, torch.sqrt((1 - dirs[:, 1] ** 2).clamp_min(0))
+
+
 def fit_horizon(horizon: Tensor, vp: Tensor, options: HorizonFitOptions | None = None, **overrides) -> dict[str, Tensor]:
     """Fit the horizon plane to probability maps.
 
@@ -164,8 +173,7 @@ def fit_horizon(horizon: Tensor, vp: Tensor, options: HorizonFitOptions | None =
                          f"{tuple(horizon.shape)} and {tuple(vp.shape)}")
     B, _, H, W = horizon.shape
     dtype = horizon.dtype if horizon.dtype == torch.float64 else torch.float32
-    dirs = Equirectangular(width=W, height=H).unproject_grid(dtype, horizon.device).direction.reshape(-1, 3)
-    area = torch.sqrt((1 - dirs[:, 1] ** 2).clamp_min(0))  # cos(latitude)
+    dirs, area = _sphere_grid(H, W, dtype, str(horizon.device))
     pix = math.pi / H
     gen = torch.Generator().manual_seed(o.seed)
     ups, verts, valid = [], [], []

@@ -51,3 +51,20 @@ def test_coherence_thesis_rejects_reference_downweights():
     ref = fit_horizon(hl, vp, coherence="reference")
     assert ref["valid"][0]  # down-weighted but the only candidate
     assert horizon_normal_error(ref["up"], up_from_rotation(R1[None]), sign_agnostic=True)[0] < 0.5
+
+
+def test_cached_sphere_grid_is_the_camera_grid_and_is_never_written():
+    """fit_horizon reuses one direction grid per map size: equal to the camera's, and unchanged by fits."""
+    from omnidl.cameras import Equirectangular
+    from omnidl.geometry.horizon import _sphere_grid
+
+    R = random_tilt_rotation(2, 1.0, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    hl, vp = horizon_heatmaps(R.float(), 32, 64)
+    first = fit_horizon(hl, vp)
+    dirs, area = _sphere_grid(32, 64, torch.float32, "cpu")
+    ref = Equirectangular(width=64, height=32).unproject_grid(torch.float32).direction.reshape(-1, 3)
+    assert torch.equal(dirs, ref)
+    assert torch.equal(area, torch.sqrt((1 - ref[:, 1] ** 2).clamp_min(0)))
+    again = fit_horizon(hl, vp)
+    assert torch.equal(first["up"], again["up"]) and torch.equal(dirs, ref)
+    assert _sphere_grid(32, 64, torch.float32, "cpu")[0] is dirs
