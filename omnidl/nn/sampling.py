@@ -245,6 +245,40 @@ def save_columns_context(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, pl
     ctx.in_shape = tuple(x.shape)
 
 
+def new_accumulators(ctx, out_channels: int, like: Tensor) -> tuple[Tensor | None, Tensor | None]:
+    """One worker's private gradient accumulators (input bands of neighbouring chunks overlap): input rows
+    ``(B, H*W, C)`` and weight ``(kh*kw*C, Cout)`` zeros, each ``None`` when that gradient is not needed."""
+    B, C, H, W = ctx.in_shape
+    kh, kw = ctx.plan.kernel_size
+    opts = dict(dtype=like.dtype, device=like.device)
+    return (torch.zeros(B, H * W, C, **opts) if ctx.needs_input_grad[0] else None,
+            torch.zeros(kh * kw * C, out_channels, **opts) if ctx.needs_input_grad[1] else None)
+
+
+def finish_backward(ctx, grad_out: Tensor, parts: list[tuple[Tensor | None, Tensor | None]]) -> tuple:
+    """The gradients a fixed-offset convolution's ``backward`` returns, from the workers' private
+    accumulators ``parts``: ``[(grad of the input rows (B, H*W, C) or None, grad of the weight as
+    (kh*kw*C, Cout) or None), ...]`` (summed here), in the input's memory format, plus the bias gradient."""
+    B, C, H, W = ctx.in_shape
+    kh, kw = ctx.plan.kernel_size
+    gx, gwm = parts[0]
+    for px, pw in parts[1:]:
+        if gx is not None:
+            gx += px
+        if gwm is not None:
+            gwm += pw
+    gw = gb = None
+    if gx is not None:
+        gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
+        if not ctx.channels_last:
+            gx = gx.contiguous()
+    if gwm is not None:
+        gw = gwm.view(kh, kw, C, gwm.shape[1]).permute(3, 2, 0, 1)
+    if ctx.needs_input_grad[2] and ctx.has_bias:
+        gb = grad_out.sum((0, 2, 3))
+    return gx, gw, gb, None, None
+
+
 class _FixedOffsetConv(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,  # type: ignore[override]
@@ -293,8 +327,7 @@ class _FixedOffsetConv(torch.autograd.Function):
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
         plan: SamplingPlan = ctx.plan
         xr, wm = ctx.saved_tensors
-        B, C, H, W = ctx.in_shape
-        kh, kw = plan.kernel_size
+        B, C = ctx.in_shape[:2]
         Cout = wm.shape[1]
         P = plan.out_hw[0] * plan.out_hw[1]
         if _is_channels_last(grad_out):
@@ -307,14 +340,12 @@ class _FixedOffsetConv(torch.autograd.Function):
 
             def gchunk(b: int, s: int, e: int) -> Tensor:
                 return g[b, :, s:e].t()  # strided (P_c, Cout) view, BLAS-compatible
-        need_x, need_w, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
+        need_x, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         wmt = wm.t()
         tasks = [(b, s, e, lo, hi, st) for b in range(B) for s, e, lo, hi, st in plan.chunks(ctx.positions)]
 
         def work(part: list) -> tuple[Tensor | None, Tensor | None]:
-            # private accumulators: input bands of neighbouring chunks overlap
-            gx = torch.zeros(B, H * W, C, dtype=g.dtype, device=g.device) if need_x else None
-            gwm = torch.zeros(kh * kw * C, Cout, dtype=g.dtype, device=g.device) if need_w else None
+            gx, gwm = new_accumulators(ctx, Cout, g)
             for b, s, e, lo, hi, st in part:
                 gc = gchunk(b, s, e)
                 if need_w:  # recompute the chunk's columns (cheap gather, stays in cache)
@@ -323,23 +354,7 @@ class _FixedOffsetConv(torch.autograd.Function):
                     gx[b, lo:hi].addmm_(st, torch.mm(gc, wmt).view(-1, C))
             return gx, gwm
 
-        parts = _run_split(tasks, work, g.device)
-        gx = gw = gb = None
-        if need_x:
-            gx = parts[0][0]
-            for p in parts[1:]:
-                gx += p[0]
-            gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
-            if not ctx.channels_last:
-                gx = gx.contiguous()
-        if need_w:
-            gwm = parts[0][1]
-            for p in parts[1:]:
-                gwm += p[1]
-            gw = gwm.view(kh, kw, C, Cout).permute(3, 2, 0, 1)
-        if need_b and ctx.has_bias:
-            gb = grad_out.sum((0, 2, 3))
-        return gx, gw, gb, None, None
+        return finish_backward(ctx, grad_out, _run_split(tasks, work, g.device))
 
 
 def fixed_offset_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,

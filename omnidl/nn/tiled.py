@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from .sampling import (SamplingPlan, _FixedOffsetConv, _gather, _is_channels_last, _rows, _run_split,
-                       chunk_positions, save_columns_context)
+                       chunk_positions, finish_backward, new_accumulators, save_columns_context)
 
 #: target size (bytes) of one gathered tile: oneDNN's stride-k convolution ran fastest with tiles of a few
 #: MB here (1-row tiles of 64 channels were 35 % slower, 16-row tiles of 64 channels 35 % slower)
@@ -110,16 +110,14 @@ class _TiledConv(_FixedOffsetConv):
         tp = tiled_plan(plan)
         xr, _ = ctx.saved_tensors
         w = ctx.weight
-        B, C, H, W = ctx.in_shape
+        B, C = ctx.in_shape[:2]
         Cout = w.shape[0]
         kh, kw = plan.kernel_size
         Wo = plan.out_hw[1]
-        need_x, need_w, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[2]
+        need_x, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
 
         def work(part: list) -> tuple[Tensor | None, Tensor | None]:
-            # private accumulators per part: input bands of neighbouring chunks overlap
-            gx = torch.zeros(B, H * W, C, dtype=grad_out.dtype, device=grad_out.device) if need_x else None
-            gwm = torch.zeros(kh * kw * C, Cout, dtype=grad_out.dtype, device=grad_out.device) if need_w else None
+            gx, gwm = new_accumulators(ctx, Cout, grad_out)
             for b, s, e, lo, hi, st in part:
                 gy = grad_out[b:b + 1, :, s // Wo:e // Wo].contiguous(memory_format=torch.channels_last)
                 if need_w:  # columns in (position, tap) order against the (P_c, Cout) gradient rows
@@ -129,23 +127,9 @@ class _TiledConv(_FixedOffsetConv):
                     gx[b, lo:hi].addmm_(st, gt[0].permute(1, 2, 0).reshape(-1, C))
             return gx, gwm
 
-        parts = _run_split([(b, *c) for b in range(B) for c in tp.chunks(ctx.bwd_rows * Wo)], work, grad_out.device)
-        gx, gwm = parts[0]
-        for px, pw in parts[1:]:
-            if need_x:
-                gx += px
-            if need_w:
-                gwm += pw
-        gw = gb = None
-        if need_x:
-            gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
-            if not ctx.channels_last:
-                gx = gx.contiguous()
-        if need_w:
-            gw = gwm.view(kh, kw, C, Cout).permute(3, 2, 0, 1)
-        if need_b and ctx.has_bias:
-            gb = grad_out.sum((0, 2, 3))
-        return gx, gw, gb, None, None
+        return finish_backward(ctx, grad_out,
+                               _run_split([(b, *c) for b in range(B) for c in tp.chunks(ctx.bwd_rows * Wo)], work,
+                                          grad_out.device))
 
 
 def tiled_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan, rows: int | None = None) -> Tensor:
