@@ -30,14 +30,19 @@ def to_gray(image: Tensor) -> Tensor:
     return (image * w).sum(1, keepdim=True)
 
 
+def _gaussian_taps(sigma_px: float, dtype: torch.dtype, device=None) -> tuple[int, Tensor]:
+    """Radius ``r = ceil(3 sigma)`` (at least 1) and the normalised 1-D Gaussian taps ``(2r + 1,)`` of :func:`blur`."""
+    r = max(1, int(math.ceil(3 * sigma_px)))
+    x = torch.arange(-r, r + 1, dtype=dtype, device=device)
+    k = torch.exp(-x * x / (2 * sigma_px * sigma_px))
+    return r, k / k.sum()
+
+
 def blur(image: Tensor, sigma_px: float) -> Tensor:
     """Separable Gaussian blur of ``(B, C, H, W)``; wraps horizontally, replicates vertically."""
     if sigma_px <= 0:
         return image
-    r = max(1, int(math.ceil(3 * sigma_px)))
-    x = torch.arange(-r, r + 1, dtype=image.dtype, device=image.device)
-    k = torch.exp(-x * x / (2 * sigma_px * sigma_px))
-    k = k / k.sum()
+    r, k = _gaussian_taps(sigma_px, image.dtype, image.device)
     C = image.shape[1]
     img = F.pad(image, (r, r, 0, 0), mode="circular") if r < image.shape[-1] else image.repeat(1, 1, 1, 3)[
         ..., image.shape[-1] - r: 2 * image.shape[-1] + r]
@@ -50,10 +55,7 @@ def blur(image: Tensor, sigma_px: float) -> Tensor:
 def _blur_matrix(n: int, sigma_px: float, wrap: bool, dtype: torch.dtype, device: str) -> Tensor:
     """``(n, n)`` matrix ``K`` of :func:`blur`'s 1-D Gaussian along an axis of length ``n`` (``out = K @ x``):
     ``wrap`` = circular (longitude), else replicated borders (latitude). Built in float64, cached."""
-    r = max(1, int(math.ceil(3 * sigma_px)))
-    x = torch.arange(-r, r + 1, dtype=torch.float64)
-    k = torch.exp(-x * x / (2 * sigma_px * sigma_px))
-    k = k / k.sum()
+    r, k = _gaussian_taps(sigma_px, torch.float64)
     idx = torch.arange(n)[:, None] + torch.arange(-r, r + 1)[None]  # (n, 2r + 1) source of each tap
     idx = idx.remainder(n) if wrap else idx.clamp(0, n - 1)
     K = torch.zeros(n, n, dtype=torch.float64).scatter_add_(1, idx, k.expand(n, -1).contiguous())
