@@ -122,9 +122,14 @@ def gauss_newton_step(J: Tensor, e: Tensor, damping: float = 1e-9) -> Tensor:
     """Solve ``min |J dx + e|^2`` per batch: ``J (..., N, D)``, ``e (..., N)`` -> ``dx (..., D)``."""
     A = J.transpose(-1, -2) @ J
     b = (J.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1)
-    D = A.shape[-1]
+    return damped_step(A, b, damping)
+
+
+def damped_step(A: Tensor, b: Tensor, damping: float = 1e-9) -> Tensor:
+    """``dx = -(A + damping * mean(diag A) I)^-1 b`` for normal equations ``A (..., D, D)``, ``b (..., D)``
+    (the solve of :func:`gauss_newton_step`)."""
     scale = torch.diagonal(A, dim1=-2, dim2=-1).mean(-1, keepdim=True).clamp_min(1e-30)
-    A = A + damping * scale[..., None] * torch.eye(D, dtype=A.dtype, device=A.device)
+    A = A + damping * scale[..., None] * torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
     return -torch.linalg.solve(A, b)
 
 

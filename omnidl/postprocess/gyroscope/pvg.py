@@ -24,8 +24,8 @@ from torch import Tensor
 from omnidl.geometry.panorama import sample_panorama
 
 from .icosahedron import icosahedron_vertices
-from .photometric import (SphereImage, apply_update, blur, blur_fast, gauss_newton_step, rodrigues, rotation_jacobian,
-                          to_gray)
+from .photometric import (SphereImage, apply_update, blur, blur_fast, damped_step, gauss_newton_step, rodrigues,
+                          rotation_jacobian, to_gray)
 
 
 def tangent_basis(p: Tensor) -> tuple[Tensor, Tensor]:
@@ -222,8 +222,7 @@ def _pvg_fast(cur: Tensor, ref_values: Tensor, X: Tensor, R: Tensor, dofs: tuple
     B, dtype, dev = cur.shape[0], cur.dtype, cur.device
     sel = [i for i, d in enumerate(dofs) if d]
     all_dofs = len(sel) == 3
-    eye = torch.eye(len(sel), dtype=dtype, device=dev)
-    eye9 = 1e-9 * eye  # gauss_newton_step's damping
+    eye9 = 1e-9 * torch.eye(3, dtype=dtype, device=dev)  # damped_step's damping (all three axes)
     terms = PVGTerms(X, B)
     Q = torch.empty(B, 4, 4, dtype=dtype, device=dev)
     QT = terms.out.transpose(1, 2)
@@ -244,11 +243,8 @@ def _pvg_fast(cur: Tensor, ref_values: Tensor, X: Tensor, R: Tensor, dofs: tuple
             else:
                 A = R @ M @ R.transpose(-1, -2)
                 b = (R @ c.unsqueeze(-1))[..., 0]
-                A, b = A[:, sel][:, :, sel], b[:, sel]
-                scale = torch.diagonal(A, dim1=-2, dim2=-1).mean(-1, keepdim=True).clamp_min(1e-30)
-                dx = -torch.linalg.solve(A + (1e-9 * scale)[..., None] * eye, b)
                 w = torch.zeros(B, 3, dtype=dtype, device=dev)
-                w[:, sel] = dx
+                w[:, sel] = damped_step(A[:, sel][:, :, sel], b[:, sel])
                 n = w.norm(dim=-1, keepdim=True)
                 w = w * (0.35 / n).clamp(max=1.0)  # trust region: at most 20° per step
             R = rodrigues(w) @ R
