@@ -195,21 +195,16 @@ def column_boundaries(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor,
         kind = _room_kind(camera, (R, t), uv.reshape(-1, 2), poly, scene.height).reshape(v.shape)
         return (kind == lo_kind[:, None]).to(torch.int64)
 
-    result = None
+    replayed = False
     want = valid.reshape(-1)
     edge = _edge_rows(scene, camera, R, t, poly, want) if vertical_columns else None
     if edge is not None:
         lo_f, hi_f, moved_lo, moved_hi = _replay(lo, hi, edge)
         # one cast of both ends: every decided end must lie on the side the replay put it
         sides = cast_same(torch.stack([lo_f, hi_f], 1))                         # (2W, 2)
-        if bool((want & moved_lo & (sides[:, 0] != 1)).any() | (want & moved_hi & (sides[:, 1] != 0)).any()):
-            result = None
-        else:
-            result = lo_f, hi_f
-    if result is None:
+        replayed = not bool((want & moved_lo & (sides[:, 0] != 1)).any() | (want & moved_hi & (sides[:, 1] != 0)).any())
+    if not replayed:
         lo_f, hi_f, _, _ = _refine(lo, hi, cast_same)
-    else:
-        lo_f, hi_f = result
     v = (0.5 * (lo_f + hi_f)).reshape(2, W)
     v = torch.where(valid, v, torch.full_like(v, -1.0))
     return v.to(torch.float32), valid
