@@ -38,7 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._timing import interleaved, is_loaded, load_line, ratio, target_line  # noqa: E402
 from omnidl.cameras import Equirectangular  # noqa: E402
 from omnidl.nn import ProjectedConv2d, clear_plan_cache, plan_cache_info  # noqa: E402
-from omnidl.nn.sampling import CHUNK_BYTES, circular_offsets, deform_conv2d_circular  # noqa: E402
+from omnidl.nn.projected_conv import get_plan  # noqa: E402
+from omnidl.nn.sampling import chunk_positions, circular_offsets, deform_conv2d_circular  # noqa: E402
 
 TARGETS = {64: (1.3, 1.5), 256: (1.1, 1.2)}  # channels -> (fwd, fwd+bwd) max ratio to conv2d
 
@@ -81,13 +82,13 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
     fast = ProjectedConv2d(C, C, 3, padding=1, camera=cam, backend="fast")
     conv = torch.nn.Conv2d(C, C, 3, padding=1)
     conv.load_state_dict(fast.state_dict())
-    # the previous implementation: the column GEMM path (an explicit chunk length selects it)
-    plan_positions = max(16, CHUNK_BYTES // (9 * C * 4))
-    cols = ProjectedConv2d(C, C, 3, padding=1, camera=cam, backend="fast", chunk_positions=plan_positions)
-    cols.load_state_dict(fast.state_dict())
     t0 = time.perf_counter()
     fast(torch.zeros(1, C, H, W))
     build_ms = (time.perf_counter() - t0) * 1e3
+    # the previous implementation: the column GEMM path, selected by an explicit chunk length (its default one)
+    positions = chunk_positions(get_plan(fast.geometry_key((H, W)), torch.device("cpu"), torch.float32), C, 4)
+    cols = ProjectedConv2d(C, C, 3, padding=1, camera=cam, backend="fast", chunk_positions=positions)
+    cols.load_state_dict(fast.state_dict())
     x = torch.randn(batch, C, H, W)
     xcl = x.contiguous(memory_format=torch.channels_last)
     jobs = {}
@@ -155,7 +156,6 @@ def breakdown(C: int, H: int, W: int, reps: int) -> dict:
     oneDNN convolution of the tiles, the copy into the output, against the dense ``nn.Conv2d`` (channels-last)
     with the same FLOPs. ``dense conv + gather`` is the issue's limit; the tile convolution differs from the
     dense one only in reading each tap from memory instead of re-using input pixels from cache."""
-    from omnidl.nn.projected_conv import get_plan
     from omnidl.nn.sampling import _rows
     from omnidl.nn.tiled import _tile, tile_rows, tiled_plan
 
