@@ -15,6 +15,8 @@ from typing import Literal, Union
 import torch
 from torch import Tensor, nn
 
+from omnidl.nn.projected_conv import ProjectedConv2d
+
 ChannelsLast = Union[bool, Literal["auto"]]
 
 
@@ -39,7 +41,6 @@ class MemoryFormatPolicy:
             return bool(self.channels_last)
         if not self.training:  # type: ignore[attr-defined]
             return True
-        from omnidl.nn.projected_conv import ProjectedConv2d
         return any(isinstance(m, ProjectedConv2d) and m.camera is not None
                    for m in self.modules())  # type: ignore[attr-defined]
 
