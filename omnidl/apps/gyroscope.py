@@ -65,17 +65,11 @@ def load_holinet(checkpoint: str | Path, device: str = "cpu") -> tuple[torch.nn.
     """
     from omegaconf import OmegaConf
 
-    from omnidl.engine.checkpoint import load_checkpoint, load_model_weights
+    from omnidl.engine.checkpoint import load_checkpoint, load_model_weights, model_config
     from omnidl.models import create_model
     ckpt = load_checkpoint(checkpoint, map_location=device)
-    cfg = ckpt.get("config")
-    if not cfg or "model" not in cfg:
-        raise ValueError(f"checkpoint {checkpoint}: no 'config' with a 'model' entry; it must come from "
-                         "`python train.py model=holinet...`")
-    conf = OmegaConf.create(cfg)
-    mcfg = OmegaConf.to_container(conf.model, resolve=True)
-    name = mcfg.pop("name", "holinet")
-    mcfg.pop("_target_", None)
+    name, mcfg, conf = model_config(ckpt, f"checkpoint {checkpoint}",
+                                    "it must come from `python train.py model=holinet...`", default_name="holinet")
     if name != "holinet":
         raise ValueError(f"checkpoint {checkpoint} holds a {name!r} model (config model.name); the gyroscope's "
                          "--checkpoint needs a HoLiNet (python train.py model=holinet or holinet_small), which "

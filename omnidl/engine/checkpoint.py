@@ -49,6 +49,29 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return obj
 
 
+def model_config(ckpt: dict[str, Any], label: str, hint: str, default_name: str | None = None):
+    """``(name, kwargs, config)`` of the model a ``train.py`` checkpoint was trained with: the registered model
+    name, the ``create_model`` keyword arguments of ``config.model`` (``_target_`` dropped; ``pretrained`` and
+    ``official_checkpoint`` set to ``None``, since the weights come from the checkpoint itself and those paths
+    may not exist here) and the whole run config (an ``OmegaConf`` object). ``label`` names the file in errors
+    (e.g. ``"--checkpoint ck.pt"``), ``hint`` says where such a checkpoint comes from."""
+    from omegaconf import OmegaConf
+
+    cfg = ckpt.get("config")
+    if not cfg or "model" not in cfg:
+        raise ValueError(f"{label}: no 'config' with a 'model' entry; {hint}")
+    conf = OmegaConf.create(cfg)
+    kwargs = OmegaConf.to_container(conf.model, resolve=True)
+    kwargs.pop("_target_", None)
+    name = kwargs.pop("name", default_name)
+    if name is None:
+        raise ValueError(f"{label}: config.model has no 'name' (a registered model name)")
+    for k in ("pretrained", "official_checkpoint"):
+        if k in kwargs:
+            kwargs[k] = None
+    return name, kwargs, conf
+
+
 def load_model_weights(model: torch.nn.Module, ckpt: dict[str, Any], path: str | Path = "<checkpoint>",
                        strict: bool = True) -> None:
     """Load ``ckpt["model"]`` into ``model`` with an error that lists missing/unexpected keys."""

@@ -173,3 +173,20 @@ def test_finishing_again_when_last_is_already_the_best_link_leaves_no_temp(cfg_f
         cfg.trainer.resume = True
     train(cfg)
     assert sorted(p.name for p in ck_dir.iterdir()) == ["best.pt", "last.pt"]
+
+
+def test_model_config_gives_the_model_kwargs_without_weight_paths():
+    """The model of a train.py checkpoint: name, create_model kwargs (no _target_, weight paths dropped: the
+    weights are the checkpoint's own), the run config; clear errors without a config or a model name."""
+    from omnidl.engine.checkpoint import model_config
+
+    cfg = {"model": {"_target_": "omnidl.models.create_model", "name": "holinet", "width": 0.25,
+                     "pretrained": "/nowhere/resnet18.pth"}, "data": {"height": 64}}
+    name, kwargs, conf = model_config({"config": cfg}, "checkpoint ck.pt", "hint")
+    assert name == "holinet" and kwargs == {"width": 0.25, "pretrained": None} and conf.data.height == 64
+    del cfg["model"]["name"]
+    assert model_config({"config": cfg}, "ck", "hint", default_name="holinet")[0] == "holinet"
+    with pytest.raises(ValueError, match=r"checkpoint ck\.pt: config\.model has no 'name'"):
+        model_config({"config": cfg}, "checkpoint ck.pt", "hint")
+    with pytest.raises(ValueError, match=r"checkpoint ck\.pt: no 'config' with a 'model' entry; from train\.py"):
+        model_config({"model": {}}, "checkpoint ck.pt", "from train.py")

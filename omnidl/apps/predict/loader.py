@@ -92,22 +92,13 @@ def load_predictor(path: str | Path, device: str = "cpu") -> Predictor:
                              rnn=bool(raw["kwargs"].get("use_rnn", True)), official_checkpoint=str(path))
         name, h, w, cam, source = "horizonnet", 512, 1024, None, "HorizonNet official weights"
     else:
-        from omnidl.engine.checkpoint import load_model_weights
-        ckpt = raw
-        cfg = ckpt.get("config")
-        if not cfg or "model" not in cfg:
-            raise ValueError(f"--checkpoint {path}: no 'config' with a 'model' entry; it must be a checkpoint of "
-                             "`python train.py model=...` (or converted/official weights, see `omnidl predict -h`)")
         from omegaconf import OmegaConf
-        conf = OmegaConf.create(cfg)
-        mcfg = OmegaConf.to_container(conf.model, resolve=True)
-        mcfg.pop("_target_", None)
-        name = mcfg.pop("name", None)
-        if name is None:
-            raise ValueError(f"--checkpoint {path}: config.model has no 'name' (a registered model name)")
-        for k in ("pretrained", "official_checkpoint"):   # weights come from the checkpoint itself
-            if k in mcfg:
-                mcfg[k] = None
+
+        from omnidl.engine.checkpoint import load_model_weights, model_config
+        ckpt = raw
+        name, mcfg, conf = model_config(ckpt, f"--checkpoint {path}", "it must be a checkpoint of "
+                                        "`python train.py model=...` (or converted/official weights, see "
+                                        "`omnidl predict -h`)")
         model = create_model(name, **mcfg)
         load_model_weights(model, ckpt, path)
         h = OmegaConf.select(conf, "data.height", default=None) or OmegaConf.select(conf, "camera.height", default=None)
