@@ -8,10 +8,10 @@ Per config ``CxHxW`` (equirectangular camera of the input size, 3x3, stride 1, p
 (``no_grad``) and forward+backward (input and weight require grad) of
 
 * ``conv2d`` / ``conv2d_cl``: ``nn.Conv2d`` on NCHW / channels-last input (the baselines of the targets);
-* ``fast`` / ``fast_cl``: ``ProjectedConv2d(backend="fast")`` on the same inputs (on CPU float32 the forward
-  convolves tiles of gathered taps with oneDNN, :mod:`omnidl.nn.tiled`);
-* ``columns`` / ``columns_cl``: the same layer on the column GEMM path (the previous fast backend, selected by
-  an explicit ``chunk_positions``), so every run shows what the tiled forward gains;
+* ``fast`` / ``fast_cl``: ``ProjectedConv2d(backend="fast")`` on the same inputs (on CPU float32 the native
+  kernel that fuses the gather of the taps into the product, :mod:`omnidl.nn.fused`);
+* ``tiled`` / ``tiled_cl``: the same layer on its tiled oneDNN path (:mod:`omnidl.nn.tiled`, the previous fast
+  backend, still the path without a C compiler), so every run shows what the fused kernel gains;
 * ``deform``: ``torchvision.ops.deform_conv2d`` called directly with the layer's offsets and mask on an
   input circularly pre-padded by one kernel radius, with the column of every sample taken modulo ``W``
   (:func:`omnidl.nn.sampling.deform_conv2d_circular`): wrap-correct, the same output size as the layer (the
@@ -39,7 +39,8 @@ from benchmarks._timing import interleaved, is_loaded, load_line, ratio, target_
 from omnidl.cameras import Equirectangular  # noqa: E402
 from omnidl.nn import ProjectedConv2d, clear_plan_cache, plan_cache_info  # noqa: E402
 from omnidl.nn.projected_conv import get_plan  # noqa: E402
-from omnidl.nn.sampling import chunk_positions, circular_offsets, deform_conv2d_circular  # noqa: E402
+from omnidl.nn import fused, native  # noqa: E402
+from omnidl.nn.sampling import circular_offsets, deform_conv2d_circular  # noqa: E402
 
 TARGETS = {64: (1.3, 1.5), 256: (1.1, 1.2)}  # channels -> (fwd, fwd+bwd) max ratio to conv2d
 
@@ -74,6 +75,22 @@ class _Deform(torch.nn.Module):
                                       L._padding_pair(), L.dilation)
 
 
+class _Tiled(torch.nn.Module):
+    """The same layer on its tiled oneDNN path (the native fused kernel turned off for its forward, which also
+    picks the backward)."""
+
+    def __init__(self, layer: ProjectedConv2d) -> None:
+        super().__init__()
+        self.layer = layer
+
+    def forward(self, x):
+        before, fused.ENABLED = fused.ENABLED, False
+        try:
+            return self.layer(x)
+        finally:
+            fused.ENABLED = before
+
+
 def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, deform_reps: int,
                skip_deform: bool) -> dict:
     torch.manual_seed(0)
@@ -85,15 +102,13 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
     t0 = time.perf_counter()
     fast(torch.zeros(1, C, H, W))
     build_ms = (time.perf_counter() - t0) * 1e3
-    # the previous implementation: the column GEMM path, selected by an explicit chunk length (its default one)
-    positions = chunk_positions(get_plan(fast.geometry_key((H, W)), torch.device("cpu"), torch.float32), C, 4)
-    cols = ProjectedConv2d(C, C, 3, padding=1, camera=cam, backend="fast", chunk_positions=positions)
-    cols.load_state_dict(fast.state_dict())
+    # the previous implementation: the tiled oneDNN path (the layer's path when the native kernel is off)
+    tiled = _Tiled(fast)
     x = torch.randn(batch, C, H, W)
     xcl = x.contiguous(memory_format=torch.channels_last)
     jobs = {}
     for name, m, inp in (("conv2d", conv, x), ("fast", fast, x), ("conv2d_cl", conv, xcl), ("fast_cl", fast, xcl),
-                         ("columns", cols, x), ("columns_cl", cols, xcl)):
+                         ("tiled", tiled, x), ("tiled_cl", tiled, xcl)):
         f, fb = _jobs(m, inp, inp.clone().requires_grad_(True))
         jobs[name + " fwd"], jobs[name + " fwd+bwd"] = f, fb
     check = None
@@ -114,7 +129,7 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
     print(load_line(threads))
     print("| variant | fwd ms (median / min) | fwd+bwd ms (median / min) | fwd / base | fwd+bwd / base |")
     print("|---|---|---|---|---|")
-    for n in ("conv2d", "fast", "conv2d_cl", "fast_cl", "columns", "columns_cl", "deform"):
+    for n in ("conv2d", "fast", "conv2d_cl", "fast_cl", "tiled", "tiled_cl", "deform"):
         if n + " fwd" not in times:
             continue
         base = "conv2d_cl" if n.endswith("_cl") else "conv2d"
@@ -138,10 +153,10 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
                           r, f"the faster nn.Conv2d ({bn}, {med[bn + ' ' + what]:.1f} ms)",
                           None if t is None else f"<= {t}x", None if t is None else r <= t, loaded))
     for what in ("fwd", "fwd+bwd"):
-        best = {n: min(med[f"{n} {what}"], med[f"{n}_cl {what}"]) for n in ("fast", "columns")}
-        res[f"columns_vs_fast_{what}"] = best["columns"] / best["fast"]
-        print(f"column GEMM path (the previous fast backend) / fast {what}, faster layouts: "
-              f"{res[f'columns_vs_fast_{what}']:.2f}x ({best['columns']:.1f} vs {best['fast']:.1f} ms)")
+        best = {n: min(med[f"{n} {what}"], med[f"{n}_cl {what}"]) for n in ("fast", "tiled")}
+        res[f"tiled_vs_fast_{what}"] = best["tiled"] / best["fast"]
+        print(f"tiled oneDNN path (the previous fast backend) / fast {what}, faster layouts: "
+              f"{res[f'tiled_vs_fast_{what}']:.2f}x ({best['tiled']:.1f} vs {best['fast']:.1f} ms)")
     if "deform fwd" in times:
         for what in ("fwd", "fwd+bwd"):
             r = med[f"deform {what}"] / med[f"fast {what}"]
@@ -152,10 +167,11 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
 
 
 def breakdown(C: int, H: int, W: int, reps: int) -> dict:
-    """Where the tiled forward's time goes, one thread, per image: the gather of every tap (all tiles), the
+    """Where the tiled path's forward time goes, one thread, per image: the gather of every tap (all tiles), the
     oneDNN convolution of the tiles, the copy into the output, against the dense ``nn.Conv2d`` (channels-last)
-    with the same FLOPs. ``dense conv + gather`` is the issue's limit; the tile convolution differs from the
-    dense one only in reading each tap from memory instead of re-using input pixels from cache."""
+    with the same FLOPs, and the layer on its fused native path. ``dense conv + gather`` is the issue's limit;
+    the tile convolution differs from the dense one only in reading each tap from memory instead of re-using
+    input pixels from cache; the fused kernel reads each tap from a cache-resident block."""
     from omnidl.nn.sampling import _rows
     from omnidl.nn.tiled import _tile, tile_rows, tiled_plan
 
@@ -190,8 +206,9 @@ def breakdown(C: int, H: int, W: int, reps: int) -> dict:
             for (s, e), y in zip(spans, outs):
                 result[0, :, s // Wo:e // Wo].copy_(y[0])
         with torch.no_grad():
-            jobs = {"dense conv2d": lambda: conv(x), "layer": lambda: layer(x), "gather": gather,
-                    "tile conv": tconv, "copy": copy}
+            tiled = _Tiled(layer)
+            jobs = {"dense conv2d": lambda: conv(x), "layer (fused)": lambda: layer(x),
+                    "layer (tiled)": lambda: tiled(x), "gather": gather, "tile conv": tconv, "copy": copy}
             times = {k: [] for k in jobs}
             for fn in jobs.values():
                 fn()
@@ -209,7 +226,8 @@ def breakdown(C: int, H: int, W: int, reps: int) -> dict:
     for k, v in med.items():
         print(f"{k}: {v:.1f} ms = {v / d:.2f}x dense conv2d")
     print(f"dense conv2d + gather (the limit named by the issue) = {(d + med['gather']) / d:.2f}x; tile conv + gather "
-          f"+ copy = {(med['tile conv'] + med['gather'] + med['copy']) / d:.2f}x; the layer = {med['layer'] / d:.2f}x")
+          f"+ copy = {(med['tile conv'] + med['gather'] + med['copy']) / d:.2f}x; the tiled layer = "
+          f"{med['layer (tiled)'] / d:.2f}x; the fused layer = {med['layer (fused)'] / d:.2f}x")
     return med
 
 
@@ -257,6 +275,8 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(a.threads)
     print(f"# ProjectedConv2d benchmark, float32, CPU, {a.threads} threads, median of {a.reps} interleaved reps")
     print(load_line(a.threads, "at start"))
+    st = native.status()
+    print(f"native kernel: {st['kernel'] or 'unavailable: ' + st['reason']}")
     for cfg in a.configs:
         C, H, W = (int(v) for v in cfg.lower().split("x"))
         run_config(C, H, W, a.batch, a.reps, a.threads, a.deform_reps, a.skip_deform)

@@ -20,6 +20,7 @@ from omnidl.cameras.resolve import resolve_camera
 from .offsets import Pair, compute_sampling
 from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
 from .tiled import tiled_conv2d, tiled_supported
+from .fused import fused_conv2d, fused_supported
 
 Backend = Literal["auto", "fast", "torchvision"]
 
@@ -211,9 +212,12 @@ class ProjectedConv2d(nn.Conv2d):
                                        self.dilation, wrap=key[6])
 
     def _fast(self, x: Tensor, weight: Tensor, bias: Tensor | None, key: tuple) -> Tensor:
-        """The fast backend: oneDNN convolution of gathered tiles on CPU float32 (:mod:`.tiled`), else the
-        column GEMM (:func:`fixed_offset_conv2d`; also whenever ``chunk_positions`` is given)."""
+        """The fast backend on CPU float32: the native fused gather+product kernel (:mod:`.fused`), else
+        (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and whenever
+        ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`)."""
         plan = get_plan(key, x.device, x.dtype)
+        if self.chunk_positions is None and fused_supported(x, weight, plan):
+            return fused_conv2d(x, weight, bias, plan)
         if self.chunk_positions is None and tiled_supported(x, weight):
             return tiled_conv2d(x, weight, bias, plan)
         return fixed_offset_conv2d(x, weight, bias, plan, positions=self.chunk_positions)

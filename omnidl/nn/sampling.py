@@ -232,16 +232,21 @@ def _run_split(tasks: list, fn, device: torch.device) -> list:
     return list(_cpu_pool(workers).map(run, parts))
 
 
+def weight_matrix(weight: Tensor) -> Tensor:
+    """``weight (Cout, C, kh, kw)`` as the contiguous ``(kh*kw*C, Cout)`` matrix ``Wm`` of the column products."""
+    Cout, C, kh, kw = weight.shape
+    return weight.detach().permute(2, 3, 1, 0).reshape(kh * kw * C, Cout).contiguous()
+
+
 def save_columns_context(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan, positions: int,
-                         xr: Tensor) -> None:
-    """Store on ``ctx`` what :meth:`_FixedOffsetConv.backward` needs (``xr``: the input as ``(B, H*W, C)`` rows)."""
-    K = plan.taps
+                         xr: Tensor, wm: Tensor | None = None) -> None:
+    """Store on ``ctx`` what :meth:`_FixedOffsetConv.backward` needs (``xr``: the input as ``(B, H*W, C)`` rows;
+    ``wm``: the form of the weight the caller's backward reads, default :func:`weight_matrix` of ``weight``)."""
     ctx.plan = plan
     ctx.positions = positions
     ctx.has_bias = bias is not None
     ctx.channels_last = _is_channels_last(x)
-    ctx.save_for_backward(xr if weight.requires_grad else None,
-                          weight.detach().permute(2, 3, 1, 0).reshape(K * x.shape[1], weight.shape[0]))
+    ctx.save_for_backward(xr if weight.requires_grad else None, weight_matrix(weight) if wm is None else wm)
     ctx.in_shape = tuple(x.shape)
 
 

@@ -1,4 +1,7 @@
-"""The tiled oneDNN path (CPU float32) equals the column GEMM path and deform_conv2d at float32 rounding."""
+"""The tiled oneDNN path (CPU float32) equals the column GEMM path and deform_conv2d at float32 rounding.
+
+The layer takes the tiled path where the native fused kernel is off or cannot be built; these tests turn the
+fused path off (``fused.ENABLED``) so that the layer runs the tiled one."""
 from __future__ import annotations
 
 import pytest
@@ -8,10 +11,16 @@ from omnidl.cameras import Equirectangular, get_camera_class
 from omnidl.nn import ProjectedConv2d, build_plan, deform_conv2d_reference, fixed_offset_conv2d
 from omnidl.nn.projected_conv import get_plan
 from omnidl.nn.sampling import _FixedOffsetConv
+from omnidl.nn import fused as fused_module
 from omnidl.nn import tiled as tiled_module
 from omnidl.nn.tiled import _TiledConv, tile_rows, tiled_conv2d, tiled_plan, tiled_supported
 
 TOL = 1e-5
+
+
+@pytest.fixture(autouse=True)
+def _no_fused_path(monkeypatch):
+    monkeypatch.setattr(fused_module, "ENABLED", False)
 
 
 def _close(a: torch.Tensor, b: torch.Tensor, name: str) -> None:
@@ -95,7 +104,8 @@ def test_tile_rows_targets_a_few_megabytes_and_stays_in_range():
 
 
 def test_layer_dispatch():
-    """CPU float32 without chunk_positions runs the tiled path; float64 and explicit chunks the column path."""
+    """Without the fused path, CPU float32 without chunk_positions runs the tiled path; float64 and explicit
+    chunks the column path."""
     x32 = torch.randn(1, 2, 4, 8)
     w32 = torch.randn(3, 2, 3, 3)
     assert tiled_supported(x32, w32)

@@ -1,0 +1,306 @@
+/* Fused fixed-offset convolution on the CPU (float32): the gather of the bilinear taps fused with the product.
+ *
+ * The sampling plan of omnidl.nn.sampling gives, for output position p and tap t (row r = p*K + t), four
+ * input pixels idx[r][0..3] and bilinear weights w[r][0..3]. For a block of m output positions the taps are
+ * interpolated into a small column block A (m, K*C), which stays in the core's cache, and multiplied at once
+ * by the weight matrix Wm (K*C, Cout); the full (P, K*C) column matrix never exists.
+ *
+ * Layouts (row-major): x (H*W, C) channels-last input rows of one image; out/gout (P, Cout) rows with leading
+ * dimension ldo/ldg; gx (H*W, C) and gw (K*C, Cout) are accumulated into (+=).
+ *
+ * Products: on x86-64 with AVX2/FMA, this file's 6x16 register-blocked kernel on packed 16-column panels
+ * (measured here at the core's FMA peak, as fast as oneDNN's dense convolution); elsewhere the Fortran BLAS
+ * sgemm_ that libtorch_cpu exports (column-major: a row-major (rows, cols) matrix is a column-major (cols, rows)
+ * one, so each of those calls is written transposed).
+ */
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+extern void sgemm_(const char *ta, const char *tb, const int *m, const int *n, const int *k, const float *alpha,
+                   const float *a, const int *lda, const float *b, const int *ldb, const float *beta, float *c,
+                   const int *ldc);
+/* MKL's per-thread thread count, the C entry point behind mkl_service.h's mkl_set_num_threads_local macro (the
+ * lower-case symbol is the Fortran one, taking a pointer); weak: absent from other BLAS libraries */
+extern int MKL_Set_Num_Threads_Local(int n) __attribute__((weak));
+
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#define MR 6
+#define NR 16
+#define KC_BLOCK 256
+
+/* c (mr, nr) (+)= a (mr, k) b (k, 16): a[i * rs + p * cs], b[p * 16 + j] (a packed panel, zero beyond nr). */
+static void kernel_6x16(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
+                        int accumulate, int mr, int nr) {
+    __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00;
+    __m256 c30 = c00, c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00;
+    const float *a0 = a, *a1 = a + (mr > 1 ? rs : 0), *a2 = a + (mr > 2 ? 2 * rs : 0);
+    const float *a3 = a + (mr > 3 ? 3 * rs : 0), *a4 = a + (mr > 4 ? 4 * rs : 0), *a5 = a + (mr > 5 ? 5 * rs : 0);
+    for (int p = 0; p < k; ++p) {
+        const __m256 b0 = _mm256_loadu_ps(b + 16 * p), b1 = _mm256_loadu_ps(b + 16 * p + 8);
+        const int64_t o = p * cs;
+        __m256 t = _mm256_broadcast_ss(a0 + o);
+        c00 = _mm256_fmadd_ps(t, b0, c00); c01 = _mm256_fmadd_ps(t, b1, c01);
+        t = _mm256_broadcast_ss(a1 + o);
+        c10 = _mm256_fmadd_ps(t, b0, c10); c11 = _mm256_fmadd_ps(t, b1, c11);
+        t = _mm256_broadcast_ss(a2 + o);
+        c20 = _mm256_fmadd_ps(t, b0, c20); c21 = _mm256_fmadd_ps(t, b1, c21);
+        t = _mm256_broadcast_ss(a3 + o);
+        c30 = _mm256_fmadd_ps(t, b0, c30); c31 = _mm256_fmadd_ps(t, b1, c31);
+        t = _mm256_broadcast_ss(a4 + o);
+        c40 = _mm256_fmadd_ps(t, b0, c40); c41 = _mm256_fmadd_ps(t, b1, c41);
+        t = _mm256_broadcast_ss(a5 + o);
+        c50 = _mm256_fmadd_ps(t, b0, c50); c51 = _mm256_fmadd_ps(t, b1, c51);
+    }
+    __m256 r[MR][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31}, {c40, c41}, {c50, c51}};
+    if (nr == NR) {
+        for (int i = 0; i < mr; ++i) {
+            float *ci = c + i * ldc;
+            if (accumulate) {
+                r[i][0] = _mm256_add_ps(r[i][0], _mm256_loadu_ps(ci));
+                r[i][1] = _mm256_add_ps(r[i][1], _mm256_loadu_ps(ci + 8));
+            }
+            _mm256_storeu_ps(ci, r[i][0]);
+            _mm256_storeu_ps(ci + 8, r[i][1]);
+        }
+    } else {
+        float tmp[NR];
+        for (int i = 0; i < mr; ++i) {
+            float *ci = c + i * ldc;
+            _mm256_storeu_ps(tmp, r[i][0]);
+            _mm256_storeu_ps(tmp + 8, r[i][1]);
+            for (int j = 0; j < nr; ++j) ci[j] = accumulate ? ci[j] + tmp[j] : tmp[j];
+        }
+    }
+}
+
+/* c (m, n) (+)= a (m, k) b (k, n): a[i * rs + p * cs]; b packed in ceil(n / 16) panels of (k, 16), panel q
+ * holding columns 16q.. (zero-padded); c row-major with leading dimension ldc.
+ * Per chunk of KC_BLOCK k-values: when the chunk of b is small enough to stay in L2 (B_RESIDENT bytes), each
+ * 6-row sliver of a is loaded once and run against every panel (rows outer); otherwise each panel's chunk stays
+ * in L1 while every sliver of a runs against it (panels outer). */
+#define B_RESIDENT (192 * 1024)
+static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t cs, const float *bp, float *c,
+                        int64_t ldc, int accumulate) {
+    const int panels = (n + NR - 1) / NR;
+    for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
+        const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
+        const int acc = accumulate || p0 > 0;
+        const int rows_outer = (int64_t)kb * panels * NR * (int64_t)sizeof(float) <= B_RESIDENT;
+        for (int outer = 0; outer < (rows_outer ? m : panels); outer += (rows_outer ? MR : 1)) {
+            for (int inner = 0; inner < (rows_outer ? panels : m); inner += (rows_outer ? 1 : MR)) {
+                const int i = rows_outer ? outer : inner, q = rows_outer ? inner : outer;
+                const int nr = n - q * NR < NR ? n - q * NR : NR;
+                kernel_6x16(kb, a + i * rs + p0 * cs, rs, cs, bp + (int64_t)q * k * NR + (int64_t)p0 * NR,
+                            c + i * ldc + q * NR, ldc, acc, m - i < MR ? m - i : MR, nr);
+            }
+        }
+    }
+}
+
+/* floats of the packed panels of a (k, n) matrix */
+static int64_t packed_floats(int k, int n) { return (int64_t)k * ((n + NR - 1) / NR) * NR; }
+
+/* b (k, n), element (p, j) at b[p * rs + j * cs] -> the packed panels of gemm_packed */
+static void pack_b(int k, int n, const float *b, int64_t rs, int64_t cs, float *bp) {
+    const int panels = (n + NR - 1) / NR;
+    for (int q = 0; q < panels; ++q) {
+        const int nr = n - q * NR < NR ? n - q * NR : NR;
+        float *d = bp + (int64_t)q * k * NR;
+        for (int p = 0; p < k; ++p) {
+            const float *s = b + p * rs + q * NR * cs;
+            int j = 0;
+            for (; j < nr; ++j) d[p * NR + j] = s[j * cs];
+            for (; j < NR; ++j) d[p * NR + j] = 0.0f;
+        }
+    }
+}
+#define HAVE_KERNEL 1
+#else
+#define HAVE_KERNEL 0
+#endif
+
+#if !HAVE_KERNEL
+static void blas_gemm(char ta, char tb, int m, int n, int k, float beta, const float *a, int lda, const float *b,
+                      int ldb, float *c, int ldc) {
+    const float one = 1.0f;
+    sgemm_(&ta, &tb, &m, &n, &k, &one, a, &lda, b, &ldb, &beta, c, &ldc);
+}
+
+static int single_blas_thread(void) { return MKL_Set_Num_Threads_Local ? MKL_Set_Num_Threads_Local(1) : -1; }
+static void restore_blas_threads(int prev) {
+    if (MKL_Set_Num_Threads_Local && prev >= 0) MKL_Set_Num_Threads_Local(prev);
+}
+#endif
+
+/* A[(r - r0) * C + c] = sum_j w[r][j] * x[idx[r][j] * C + c] for plan rows r in [r0, r1); corners of weight 0
+ * (outside the image, or exactly on a pixel) are not read, so a non-finite pixel reaches only the taps that
+ * sample it, as in deform_conv2d */
+static void gather(const float *x, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, float *A) {
+    for (int64_t r = r0; r < r1; ++r) {
+        const int32_t *i = idx + 4 * r;
+        const float *q = w + 4 * r;
+        float *a = A + (r - r0) * C;
+        if (q[0] != 0.0f && q[1] != 0.0f && q[2] != 0.0f && q[3] != 0.0f) {
+            const float *x0 = x + (int64_t)i[0] * C, *x1 = x + (int64_t)i[1] * C;
+            const float *x2 = x + (int64_t)i[2] * C, *x3 = x + (int64_t)i[3] * C;
+            const float w0 = q[0], w1 = q[1], w2 = q[2], w3 = q[3];
+            for (int c = 0; c < C; ++c) a[c] = w0 * x0[c] + w1 * x1[c] + w2 * x2[c] + w3 * x3[c];
+            continue;
+        }
+        memset(a, 0, sizeof(float) * (size_t)C);
+        for (int j = 0; j < 4; ++j) {
+            if (q[j] == 0.0f) continue;
+            const float *xj = x + (int64_t)i[j] * C;
+            const float wj = q[j];
+            for (int c = 0; c < C; ++c) a[c] += wj * xj[c];
+        }
+    }
+}
+
+/* gx[idx[r][j] * C + c] += w[r][j] * A[(r - r0) * C + c] (corners of weight 0 skipped) */
+static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, const float *A) {
+    for (int64_t r = r0; r < r1; ++r) {
+        const float *a = A + (r - r0) * C;
+        for (int j = 0; j < 4; ++j) {
+            const float q = w[4 * r + j];
+            if (q == 0.0f) continue;
+            float *g = gx + (int64_t)idx[4 * r + j] * C;
+            for (int c = 0; c < C; ++c) g[c] += q * a[c];
+        }
+    }
+}
+
+/* 1 when the products run on this file's AVX2/FMA kernel, 0 when they call BLAS sgemm */
+int omnidl_fc_kernel(void) { return HAVE_KERNEL; }
+
+/* floats of the packed panels of a (k, n) matrix (0 without this file's kernel: the BLAS path packs nothing) */
+int64_t omnidl_fc_packed_floats(int k, int n) { return HAVE_KERNEL ? (int64_t)k * ((n + 15) / 16) * 16 : 0; }
+
+/* The layer's weight (cout, C, K) contiguous, i.e. Wm[t * C + c][co] = wt[(co * C + c) * K + t], packed for the
+ * kernel: transpose = 0, Wm (K*C, cout) in 16-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
+ * of 16 of its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Reads each weight
+ * row once, in order (no strided transpose of the whole weight). No-op on the BLAS path. */
+void omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, float *wp) {
+#if HAVE_KERNEL
+    const int64_t KC = (int64_t)K * C;
+    if (!transpose) {
+        const int panels = (cout + NR - 1) / NR;
+        for (int q = 0; q < panels; ++q) {
+            float *d = wp + (int64_t)q * KC * NR;
+            for (int j = 0; j < NR; ++j) {
+                const int co = q * NR + j;
+                if (co >= cout) {
+                    for (int64_t p = 0; p < KC; ++p) d[p * NR + j] = 0.0f;
+                    continue;
+                }
+                const float *src = wt + co * KC;
+                for (int c = 0; c < C; ++c)
+                    for (int t = 0; t < K; ++t) d[((int64_t)t * C + c) * NR + j] = src[(int64_t)c * K + t];
+            }
+        }
+    } else {
+        const int64_t panels = (KC + NR - 1) / NR;
+        for (int co = 0; co < cout; ++co) {
+            const float *src = wt + co * KC;
+            for (int64_t q = 0; q < panels; ++q) {
+                float *d = wp + q * cout * NR + (int64_t)co * NR;
+                for (int j = 0; j < NR; ++j) {
+                    const int64_t kc = q * NR + j;
+                    d[j] = kc < KC ? src[(kc % C) * K + kc / C] : 0.0f;
+                }
+            }
+        }
+    }
+#else
+    (void)wt; (void)cout; (void)C; (void)K; (void)transpose; (void)wp;
+#endif
+}
+
+/* out rows [p0, p1) = bias + gathered taps @ Wm, in blocks of `block` positions. The kernel path reads `wp`
+ * (omnidl_fc_pack, transpose = 0: packed once by the caller for all its threads), the BLAS path `wm` (K*C, cout)
+ * row-major. Returns 0, 1 when the block buffer cannot be allocated, 2 when the operand is missing. */
+int omnidl_fc_forward(const float *x, int C, const int32_t *idx, const float *w, int K, int64_t p0, int64_t p1,
+                      const float *wm, const float *wp, int cout, const float *bias, float *out, int64_t ldo,
+                      int64_t block) {
+    const int KC = K * C;
+    if (HAVE_KERNEL ? !wp : !wm) return 2;
+    float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
+    if (!A) return 1;
+#if !HAVE_KERNEL
+    const int prev = single_blas_thread();
+#endif
+    for (int64_t s = p0; s < p1; s += block) {
+        const int m = (int)((p1 - s) < block ? (p1 - s) : block);
+        float *o = out + s * ldo;
+        gather(x, C, idx, w, s * K, (s + m) * K, A);
+        int acc = 0;
+        if (bias) {
+            for (int i = 0; i < m; ++i) memcpy(o + i * ldo, bias, sizeof(float) * (size_t)cout);
+            acc = 1;
+        }
+#if HAVE_KERNEL
+        (void)wm;
+        gemm_packed(m, cout, KC, A, KC, 1, wp, o, ldo, acc);  /* o (m, cout) (+)= A (m, KC) Wm */
+#else
+        (void)wp;
+        blas_gemm('N', 'N', cout, m, KC, acc ? 1.0f : 0.0f, wm, cout, A, KC, o, (int)ldo);
+#endif
+    }
+#if !HAVE_KERNEL
+    restore_blas_threads(prev);
+#endif
+    free(A);
+    return 0;
+}
+
+/* Gradients of output rows [p0, p1): gw += A^T gout (A re-gathered), gx += S^T (gout Wm^T). gx or gw may be
+ * NULL when that gradient is not needed. The kernel path reads `wtp` (omnidl_fc_pack, transpose = 1), the BLAS
+ * path `wm`. Returns 0, 1 when a buffer cannot be allocated, 2 when the operand is missing. */
+int omnidl_fc_backward(const float *x, int C, const int32_t *idx, const float *w, int K, int64_t p0, int64_t p1,
+                       const float *wm, const float *wtp, int cout, const float *gout, int64_t ldg, float *gx,
+                       float *gw, int64_t block) {
+    const int KC = K * C;
+    if (gx && (HAVE_KERNEL ? !wtp : !wm)) return 2;
+    float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
+#if HAVE_KERNEL
+    (void)wm;
+    float *gp = (float *)malloc(sizeof(float) * (size_t)packed_floats((int)block, cout));
+    if (!A || !gp) { free(A); free(gp); return 1; }
+#else
+    (void)wtp;
+    if (!A) return 1;
+    const int prev = single_blas_thread();
+#endif
+    /* two passes, each over every block: the weight gradient, then the input gradient (each pass keeps its own
+     * large operand, gw or the packed Wm^T, warm in the cache) */
+    for (int64_t s = p0; gw && s < p1; s += block) {
+        const int m = (int)((p1 - s) < block ? (p1 - s) : block);
+        const float *g = gout + s * ldg;
+        gather(x, C, idx, w, s * K, (s + m) * K, A);
+#if HAVE_KERNEL
+        pack_b(m, cout, g, ldg, 1, gp);
+        gemm_packed(KC, cout, m, A, 1, KC, gp, gw, cout, 1);  /* gw (KC, cout) += A^T g */
+#else
+        blas_gemm('N', 'T', cout, KC, m, 1.0f, g, (int)ldg, A, KC, gw, cout);
+#endif
+    }
+    for (int64_t s = p0; gx && s < p1; s += block) {
+        const int m = (int)((p1 - s) < block ? (p1 - s) : block);
+        const float *g = gout + s * ldg;
+#if HAVE_KERNEL
+        gemm_packed(m, KC, cout, g, ldg, 1, wtp, A, KC, 0);  /* A (m, KC) = g Wm^T */
+#else
+        blas_gemm('T', 'N', KC, m, cout, 0.0f, wm, cout, g, (int)ldg, A, KC);
+#endif
+        scatter(gx, C, idx, w, s * K, (s + m) * K, A);
+    }
+#if HAVE_KERNEL
+    free(gp);
+#else
+    restore_blas_threads(prev);
+#endif
+    free(A);
+    return 0;
+}

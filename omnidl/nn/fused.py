@@ -1,0 +1,162 @@
+"""Fixed-offset convolution with the gather fused into the product (CPU float32, :mod:`.native` kernel).
+
+For each block of output positions the kernel interpolates the block's taps into a small column block
+``A (m, K*C)`` that stays in the core's cache and multiplies it at once by ``Wm (K*C, Cout)``; the full column
+matrix, the tiles of :mod:`.tiled` and their memory traffic never exist. ``m`` is chosen so that ``A`` is about
+:data:`BLOCK_BYTES`. The sums are those of the column path (:mod:`.sampling`) in another order (float32
+rounding).
+
+Backward, per block: ``grad_W += A^T grad_out`` on re-gathered taps, and ``grad_X += S^T (grad_out Wm^T)``
+scattered straight from the block (no CSR transposes are built). Nothing but the input rows and ``Wm`` is kept
+between forward and backward.
+
+Threads: as the other CPU paths, the work is split among the single-threaded workers of
+:func:`.sampling._run_split` (one join per call); each worker runs whole ranges of output positions in one
+native call (which releases the GIL). Each worker accumulates the input gradient privately, as in the column
+path.
+"""
+from __future__ import annotations
+
+import weakref
+
+import torch
+from torch import Tensor
+
+from . import native
+from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows, _run_split, finish_backward,
+                       new_accumulators, save_columns_context, weight_matrix)
+
+#: target size (bytes) of one block of gathered taps (the core's L2 cache holds it with the weight panel);
+#: 64 and 256 channels ran equally fast from ~100 kB to ~250 kB here
+BLOCK_BYTES = 224 * 1024
+#: fewest output positions per block (where the image has them)
+MIN_BLOCK = 24
+#: ``False`` turns the fused path off (the layer then takes the tiled path): benchmarks' in-process A/B
+ENABLED = True
+
+
+def block_positions(plan: SamplingPlan, channels: int) -> int:
+    """Output positions per block: a multiple of the kernel's 6 rows with ``A`` about :data:`BLOCK_BYTES`, and
+    at least :data:`MIN_BLOCK` (each block streams the whole weight, so wide layers need some rows per pass)."""
+    return max(MIN_BLOCK, BLOCK_BYTES // (4 * plan.taps * channels) // 6 * 6)
+
+
+# packed weights of inference calls, by weight tensor: (weak reference, version, data pointer, packed)
+_PACKED: dict[tuple[int, bool], tuple[weakref.ref, int, int, Tensor]] = {}
+
+
+def _blas(lib) -> bool:
+    """True for a build whose products call BLAS (it reads the weight as ``Wm``, nothing is packed)."""
+    return lib.omnidl_fc_packed_floats(1, 1) == 0
+
+
+def _packed(lib, weight: Tensor, transpose: bool, keep: bool | None = None) -> Tensor | None:
+    """``weight (Cout, C, kh, kw)`` as the kernel's panels of ``Wm (kh*kw*C, Cout)`` (or, with ``transpose``, of
+    ``Wm^T``), packed once for all workers; ``None`` on the BLAS build. With ``keep`` (default: outside autograd)
+    the packing of an unchanged ``weight`` is kept: inference re-uses it on every call (a wide layer's weight is
+    tens of MB)."""
+    if _blas(lib):
+        return None
+    Cout, C, kh, kw = weight.shape
+    KC = kh * kw * C
+    if keep is None:
+        keep = not (torch.is_grad_enabled() and weight.requires_grad)
+    key = (id(weight), transpose)
+    hit = _PACKED.get(key) if keep else None
+    if hit is not None and hit[0]() is weight and hit[1] == weight._version and hit[2] == weight.data_ptr():
+        return hit[3]
+    wc = weight.detach().contiguous()
+    wp = torch.empty(lib.omnidl_fc_packed_floats(*((Cout, KC) if transpose else (KC, Cout))), dtype=torch.float32)
+    lib.omnidl_fc_pack(wc.data_ptr(), Cout, C, kh * kw, int(transpose), wp.data_ptr())
+    if keep:
+        _PACKED[key] = (weakref.ref(weight, lambda _, k=key: _PACKED.pop(k, None)), weight._version,
+                        weight.data_ptr(), wp)
+    return wp
+
+
+def _ranges(B: int, P: int, block: int) -> list[tuple[int, int, int]]:
+    """``(image, start, end)`` tasks: each image's positions cut into one range per worker, whole blocks."""
+    parts = max(1, min(torch.get_num_threads(), -(-P // block)))
+    bounds = [min(P, -(-P * i // parts) // block * block) if i < parts else P for i in range(parts + 1)]
+    return [(b, s, e) for b in range(B) for s, e in zip(bounds, bounds[1:]) if e > s]
+
+
+def _ptr(t: Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+def _call(rc: int, what: str) -> None:
+    if rc == 1:
+        raise MemoryError(f"fixed-offset convolution ({what}): the native kernel could not allocate its block buffer")
+    if rc != 0:
+        raise RuntimeError(f"fixed-offset convolution ({what}): the native kernel returned {rc} (missing operand)")
+
+
+class _FusedConv(_FixedOffsetConv):
+    @staticmethod
+    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan,  # type: ignore[override]
+                block: int) -> Tensor:
+        B, C, H, W = x.shape
+        Cout = weight.shape[0]
+        Ho, Wo = plan.out_hw
+        lib = native.library()
+        channels_last = _is_channels_last(x)
+        xr = _rows(x)
+        wp = _packed(lib, weight, transpose=False)
+        wm = weight_matrix(weight) if wp is None else None  # the BLAS build reads Wm itself
+        b_ = None if bias is None else bias.detach().contiguous()
+        # channels-last output rows written in place; an NCHW result is one layout copy of them
+        rows = torch.empty(B, Cout, Ho, Wo, dtype=x.dtype, memory_format=torch.channels_last)
+        out = rows.permute(0, 2, 3, 1)
+        idx, wt = plan.idx.data_ptr(), plan.weight.data_ptr()
+
+        def work(part: list) -> None:
+            for b, s, e in part:
+                _call(lib.omnidl_fc_forward(xr[b].data_ptr(), C, idx, wt, plan.taps, s, e, _ptr(wm), _ptr(wp), Cout,
+                                            _ptr(b_), out[b].data_ptr(), Cout, block), "forward")
+        _run_split(_ranges(B, Ho * Wo, block), work, x.device)
+        save_columns_context(ctx, x, weight, bias, plan, block, xr, weight.detach())  # the backward packs it
+        return rows if channels_last else rows.contiguous()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: Tensor):  # type: ignore[override]
+        plan: SamplingPlan = ctx.plan
+        xr, weight = ctx.saved_tensors
+        B, C = ctx.in_shape[:2]
+        Cout = weight.shape[0]
+        Ho, Wo = plan.out_hw
+        lib = native.library()
+        g = _rows(grad_out)  # (B, P, Cout), copy-free for a channels-last gradient
+        idx, wt, block = plan.idx.data_ptr(), plan.weight.data_ptr(), ctx.positions
+        need_x = ctx.needs_input_grad[0]
+        wtp = _packed(lib, weight, transpose=True, keep=False) if need_x else None
+        wm = weight_matrix(weight) if need_x and _blas(lib) else None
+
+        def work(part: list) -> tuple[Tensor | None, Tensor | None]:
+            gx, gwm = new_accumulators(ctx, Cout, g)
+            for b, s, e in part:
+                _call(lib.omnidl_fc_backward(None if xr is None else xr[b].data_ptr(), C, idx, wt, plan.taps, s, e,
+                                             _ptr(wm), _ptr(wtp), Cout, g[b].data_ptr(), Cout,
+                                             None if gx is None else gx[b].data_ptr(), _ptr(gwm), block), "backward")
+            return gx, gwm
+
+        return finish_backward(ctx, grad_out, _run_split(_ranges(B, Ho * Wo, block), work, grad_out.device))
+
+
+def fused_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan, block: int | None = None) -> Tensor:
+    """Fixed-offset convolution of ``x (B, C, H, W)`` (CPU float32) by the native kernel in blocks of ``block``
+    output positions (default :func:`block_positions`); same contract and output memory format as
+    :func:`.sampling.fixed_offset_conv2d`. Requires :func:`fused_supported`."""
+    if block is None:
+        block = block_positions(plan, x.shape[1])
+    return _FusedConv.apply(x, weight, bias, plan, int(block))
+
+
+def fused_supported(x: Tensor, weight: Tensor, plan: SamplingPlan) -> bool:
+    """True where the native kernel runs: enabled, built, CPU float32 input, weight and plan, int32 plan indices,
+    real tensors (``torch.compile``/``torch.export`` trace the tiled path, made of torch ops, instead)."""
+    return (ENABLED and type(x) is torch.Tensor and not torch.compiler.is_compiling()
+            and x.device.type == "cpu" and x.dtype == torch.float32 and weight.dtype == torch.float32
+            and plan.weight.dtype == torch.float32 and plan.idx.dtype == torch.int32 and plan.idx.is_contiguous()
+            and plan.weight.is_contiguous() and native.library() is not None)

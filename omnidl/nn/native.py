@@ -1,0 +1,149 @@
+"""The native CPU kernel of the fixed-offset convolution (``csrc/fixed_conv.c``): built on first use, cached.
+
+The kernel is plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`,
+which releases the GIL during each call, so the convolution's worker threads run it in parallel. On x86-64
+with AVX2/FMA its products run on its own register-blocked kernel; elsewhere they call the BLAS ``sgemm_``
+that PyTorch's CPU library exports (MKL in the x86 wheels).
+
+Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native``, linked against ``libtorch_cpu``.
+The shared library is cached under ``$OMNIDL_CACHE_DIR/native`` (default ``$XDG_CACHE_HOME/omnidl/native``,
+else ``~/.cache/omnidl/native``), named by a hash of the source, compiler, flags, torch build and CPU, and
+written atomically (compiled to a temporary name, then renamed), so concurrent processes never load a
+half-written file. ``OMNIDL_NATIVE=0`` disables the kernel.
+
+When the kernel cannot be built (no compiler, no ``sgemm_`` symbol), :func:`library` returns ``None``, warns
+once with the compiler's message, and :class:`~omnidl.nn.ProjectedConv2d` keeps its portable tiled path;
+:func:`status` says which path runs and why.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shlex
+import shutil
+import subprocess
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
+FLAGS = ["-O3", "-march=native", "-std=c11", "-fPIC", "-shared"]
+
+DISABLED = "disabled by OMNIDL_NATIVE"
+
+_LOCK = threading.Lock()
+_STATE: dict = {}
+
+
+def cache_dir() -> Path:
+    """Where built kernels are kept (see the module docstring)."""
+    root = os.environ.get("OMNIDL_CACHE_DIR")
+    if root:
+        return Path(root) / "native"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "omnidl" / "native"
+
+
+def _compiler() -> list[str] | None:
+    cc = shlex.split(os.environ.get("CC", "") or "cc")
+    return cc if cc and shutil.which(cc[0]) else None
+
+
+def _cpu_id() -> str:
+    """The CPU's model and feature flags (``-march=native`` code is only valid on such a CPU)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or platform.machine()
+    keep = [ln for ln in text.splitlines() if ln.split(":")[0].strip() in ("model name", "flags", "Features")]
+    return "\n".join(dict.fromkeys(keep))
+
+
+def _build(cc: list[str], torch_lib: str) -> Path:
+    """Compile :data:`SOURCE` unless a matching cached build exists; the path of the shared library."""
+    version = subprocess.run([*cc, "--version"], capture_output=True, text=True, timeout=60).stdout
+    link = [f"-L{torch_lib}", "-ltorch_cpu", f"-Wl,-rpath,{torch_lib}"]
+    key = hashlib.sha256("\0".join([SOURCE.read_text(), " ".join(cc), version, " ".join(FLAGS + link),
+                                    torch.__version__, _cpu_id(), platform.machine()]).encode()).hexdigest()[:16]
+    for folder in (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{os.getuid()}"):
+        target = folder / f"fixed_conv-{key}.so"
+        if target.is_file():
+            return target
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=".build-", suffix=".so", dir=folder)
+            os.close(fd)
+        except OSError:
+            continue  # not writable: try the next folder
+        try:
+            run = subprocess.run([*cc, *FLAGS, str(SOURCE), "-o", tmp, *link], capture_output=True, text=True,
+                                 timeout=300)
+            if run.returncode != 0:
+                raise RuntimeError(f"{' '.join(cc)} failed on {SOURCE.name} (exit {run.returncode}): "
+                                   f"{(run.stderr or run.stdout).strip()[-800:]}")
+            os.replace(tmp, target)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return target
+    raise RuntimeError(f"no writable folder for the built kernel (tried {cache_dir()} and the temp folder)")
+
+
+def _load(path: Path) -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(path))
+    p, i, n = ctypes.c_void_p, ctypes.c_int, ctypes.c_int64
+    lib.omnidl_fc_forward.argtypes = [p, i, p, p, i, n, n, p, p, i, p, p, n, n]
+    lib.omnidl_fc_forward.restype = i
+    lib.omnidl_fc_backward.argtypes = [p, i, p, p, i, n, n, p, p, i, p, n, p, p, n]
+    lib.omnidl_fc_backward.restype = i
+    lib.omnidl_fc_pack.argtypes = [p, i, i, i, i, p]
+    lib.omnidl_fc_pack.restype = None
+    lib.omnidl_fc_packed_floats.argtypes = [i, i]
+    lib.omnidl_fc_packed_floats.restype = n
+    lib.omnidl_fc_kernel.argtypes = []
+    lib.omnidl_fc_kernel.restype = i
+    return lib
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded kernel, built on first call; ``None`` (with one warning per process, unless disabled by
+    ``OMNIDL_NATIVE=0``) where it cannot be built."""
+    if "lib" in _STATE:
+        return _STATE["lib"]
+    with _LOCK:
+        if "lib" in _STATE:
+            return _STATE["lib"]
+        lib, path, reason = None, None, ""
+        if os.environ.get("OMNIDL_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
+            reason = DISABLED
+        elif (cc := _compiler()) is None:
+            reason = f"no C compiler found (CC={os.environ.get('CC', '') or 'cc'})"
+        else:
+            try:
+                path = _build(cc, str(Path(torch.__file__).parent / "lib"))
+                lib = _load(path)
+            except (OSError, RuntimeError, subprocess.SubprocessError) as e:
+                reason = str(e)
+        if lib is None and reason != DISABLED:
+            warnings.warn(f"omnidl: the native fixed-offset convolution kernel is unavailable ({reason}); "
+                          "ProjectedConv2d runs its slower portable path on CPU", RuntimeWarning, stacklevel=2)
+        _STATE.update(lib=lib, path=path, reason=reason)
+        return lib
+
+
+def status() -> dict:
+    """``{"available", "kernel" ("avx2" | "blas" | None), "path", "reason"}`` of the native kernel."""
+    lib = library()
+    kernel = None if lib is None else ("avx2" if lib.omnidl_fc_kernel() else "blas")
+    return {"available": lib is not None, "kernel": kernel, "path": _STATE.get("path"), "reason": _STATE["reason"]}
+
+
+def reset() -> None:
+    """Forget the loaded kernel (tests: the next :func:`library` call builds or finds it again)."""
+    with _LOCK:
+        _STATE.clear()

@@ -1,0 +1,289 @@
+"""The native fused path (CPU float32) equals the column GEMM path and deform_conv2d at float32 rounding; its
+build is cached, and without a compiler the layer falls back to the tiled path with one clear warning."""
+from __future__ import annotations
+
+import os
+import warnings
+
+import pytest
+import torch
+
+from omnidl.cameras import Equirectangular, get_camera_class
+from omnidl.nn import ProjectedConv2d, fixed_offset_conv2d, native
+from omnidl.nn import fused as fused_module
+from omnidl.nn.fused import _FusedConv, _ranges, block_positions, fused_conv2d, fused_supported
+from omnidl.nn.projected_conv import get_plan
+from omnidl.nn.sampling import _FixedOffsetConv
+from omnidl.nn.tiled import _TiledConv
+
+TOL = 1e-5
+
+pytestmark = pytest.mark.skipif(native.library() is None, reason="the native kernel cannot be built here: "
+                                f"{native.status()['reason']}")
+
+
+def _close(a: torch.Tensor, b: torch.Tensor, name: str) -> None:
+    assert a.shape == b.shape, name
+    assert (a - b).abs().max() <= TOL * max(1.0, float(b.detach().abs().max())), name
+
+
+def _camera(name: str):
+    return Equirectangular(width=48, height=24) if name == "equirect" else get_camera_class(name).example()
+
+
+def _outputs(m, x, need=("x", "w", "b")):
+    xi = x.clone().requires_grad_("x" in need)
+    m.weight.requires_grad_("w" in need)
+    y = m(xi)
+    g = torch.linspace(-1, 1, y.numel()).view_as(y)
+    wrt = [t for t, n in ((xi, "x"), (m.weight, "w"), (m.bias, "b")) if n in need and t is not None]
+    return (y, *torch.autograd.grad(y, wrt, g)) if wrt else (y,)
+
+
+@pytest.mark.parametrize("camera", ["equirect", "kannala_brandt", "scaramuzza"])
+@pytest.mark.parametrize("k,s,d", [(3, 1, 1), (3, 2, 1), (5, 1, 2), (7, 2, 1), (2, 1, 1), (1, 1, 1)])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_fused_equals_columns_and_deform_conv2d(camera, k, s, d, channels_last):
+    torch.manual_seed(k * 10 + s + d)
+    cam = _camera(camera)
+    H, W = (12, 24) if cam.width >= 2 * cam.height else (14, 14)
+    pad = d * (k // 2)
+    fused = ProjectedConv2d(3, 5, k, stride=s, padding=pad, dilation=d, camera=cam, backend="fast")
+    cols = ProjectedConv2d(3, 5, k, stride=s, padding=pad, dilation=d, camera=cam, backend="fast",
+                           chunk_positions=7)  # an explicit chunk length keeps the column GEMM path
+    ref = ProjectedConv2d(3, 5, k, stride=s, padding=pad, dilation=d, camera=cam, backend="torchvision")
+    cols.load_state_dict(fused.state_dict())
+    ref.load_state_dict(fused.state_dict())
+    x = torch.randn(2, 3, H, W)
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    outs = [_outputs(m, x) for m in (fused, cols, ref)]
+    assert type(fused(x).grad_fn).__name__.startswith(_FusedConv.__name__)
+    for name, a, b, c in zip(("output", "input grad", "weight grad", "bias grad"), *outs):
+        _close(a, b, name + " vs columns")
+        _close(a, c, name + " vs deform_conv2d")
+    # same memory format as the column path: channels-last in, channels-last out
+    assert outs[0][0].is_contiguous(memory_format=torch.channels_last) == channels_last
+    assert outs[0][1].stride() == outs[1][1].stride()
+
+
+@pytest.mark.parametrize("cin,cout", [(1, 1), (7, 17), (16, 16), (33, 40), (64, 64)])
+@pytest.mark.parametrize("bias", [True, False])
+def test_channel_counts_off_the_kernel_tile(cin, cout, bias):
+    """Output channels not a multiple of the kernel's 16 columns, positions not of its 6 rows, no bias."""
+    torch.manual_seed(cin + cout)
+    cam = Equirectangular(width=40, height=20)
+    m = ProjectedConv2d(cin, cout, 3, padding=1, camera=cam, bias=bias)
+    cols = ProjectedConv2d(cin, cout, 3, padding=1, camera=cam, bias=bias, chunk_positions=11)
+    cols.load_state_dict(m.state_dict())
+    x = torch.randn(1, cin, 10, 20)
+    for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
+        _close(a, b, name)
+
+
+@pytest.mark.parametrize("need", [("x",), ("w",), ("b",), ("x", "w"), ()])
+def test_only_the_needed_gradients(need):
+    """Input only, weight only (the input rows are then the only saved tensor), bias only, none."""
+    torch.manual_seed(len(need))
+    cam = Equirectangular(width=32, height=16)
+    m = ProjectedConv2d(4, 6, 3, padding=1, camera=cam)
+    cols = ProjectedConv2d(4, 6, 3, padding=1, camera=cam, chunk_positions=9)
+    cols.load_state_dict(m.state_dict())
+    x = torch.randn(2, 4, 8, 16)
+    for a, b in zip(_outputs(m, x, need), _outputs(cols, x, need)):
+        _close(a, b, str(need))
+
+
+@pytest.mark.parametrize("block", [6, 12, 30, 10_000])
+def test_any_block_length_gives_the_same_result(block):
+    """Blocks of one kernel tile, of lengths that do not divide the positions (last block shorter), of all."""
+    torch.manual_seed(block)
+    cam = Equirectangular(width=48, height=24)
+    m = ProjectedConv2d(4, 6, 3, padding=1, camera=cam)
+    plan = get_plan(m.geometry_key((12, 24)), torch.device("cpu"), torch.float32)
+    x = torch.randn(3, 4, 12, 24, requires_grad=True)
+    y = fused_conv2d(x, m.weight, m.bias, plan, block=block)
+    y_cols = fixed_offset_conv2d(x, m.weight, m.bias, plan)
+    _close(y, y_cols, f"block={block}")
+    g = torch.randn_like(y)
+    for a, b in zip(torch.autograd.grad(y, [x, m.weight], g), torch.autograd.grad(y_cols, [x, m.weight], g)):
+        _close(a, b, f"gradients, block={block}")
+
+
+def test_worker_split_equals_one_worker():
+    """Ranges split among 2 workers (private gradient accumulators, summed) equal one worker's result."""
+    torch.manual_seed(5)
+    cam = Equirectangular(width=48, height=24)
+    m = ProjectedConv2d(4, 6, 3, padding=1, camera=cam)
+    plan = get_plan(m.geometry_key((12, 24)), torch.device("cpu"), torch.float32)
+    x = torch.randn(2, 4, 12, 24)
+    g = torch.randn(2, 6, 12, 24)
+    runs = []
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            xi = x.clone().requires_grad_(True)
+            y = fused_conv2d(xi, m.weight, m.bias, plan, block=12)
+            runs.append((y, *torch.autograd.grad(y, [xi, m.weight], g)))
+    finally:
+        torch.set_num_threads(threads)
+    for a, b, name in zip(*runs, ("output", "input grad", "weight grad")):
+        _close(a, b, name)
+
+
+def test_ranges_cover_every_position_once_in_whole_blocks():
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2, 3, 8):
+            torch.set_num_threads(n)
+            for B, P, block in ((1, 288, 12), (2, 100, 6), (3, 5, 96), (1, 32768, 96)):
+                r = _ranges(B, P, block)
+                for b in range(B):
+                    spans = sorted((s, e) for bb, s, e in r if bb == b)
+                    assert spans[0][0] == 0 and spans[-1][1] == P
+                    assert all(e0 == s1 for (_, e0), (s1, _) in zip(spans, spans[1:]))
+                    assert all(s % block == 0 for s, _ in spans)
+                    assert len(spans) <= n
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_block_positions_are_whole_kernel_tiles_near_the_target():
+    cam = Equirectangular(width=512, height=256)
+    m = ProjectedConv2d(64, 64, 3, padding=1, camera=cam)
+    plan = get_plan(m.geometry_key((128, 256)), torch.device("cpu"), torch.float32)
+    for c in (1, 64, 256, 100_000):
+        n = block_positions(plan, c)
+        assert n >= fused_module.MIN_BLOCK and n % 6 == 0
+        assert n == fused_module.MIN_BLOCK or n * 9 * c * 4 <= fused_module.BLOCK_BYTES
+
+
+def test_layer_dispatch():
+    """CPU float32 runs the fused path; float64 and explicit chunks the column path; fused off -> tiled."""
+    cam = Equirectangular(width=16, height=8)
+    seen = []
+    for dtype, chunk in ((torch.float32, None), (torch.float32, 5), (torch.float64, None)):
+        m = ProjectedConv2d(2, 3, 3, padding=1, camera=cam, chunk_positions=chunk).to(dtype)
+        seen.append(type(m(torch.randn(1, 2, 4, 8, dtype=dtype, requires_grad=True)).grad_fn).__name__)
+    assert seen[0].startswith(_FusedConv.__name__)
+    assert seen[1].startswith(_FixedOffsetConv.__name__) and seen[2].startswith(_FixedOffsetConv.__name__)
+    plan = get_plan(m.geometry_key((4, 8)), torch.device("cpu"), torch.float32)
+    x = torch.randn(1, 2, 4, 8)
+    assert fused_supported(x, torch.randn(3, 2, 3, 3), plan)
+    assert not fused_supported(x.double(), torch.randn(3, 2, 3, 3).double(), plan)
+
+
+def test_disabled_fused_path_runs_the_tiled_path(monkeypatch):
+    monkeypatch.setattr(fused_module, "ENABLED", False)
+    m = ProjectedConv2d(2, 3, 3, padding=1, camera=Equirectangular(width=16, height=8))
+    y = m(torch.randn(1, 2, 4, 8, requires_grad=True))
+    assert type(y.grad_fn).__name__.startswith(_TiledConv.__name__)
+
+
+def test_a_nan_pixel_reaches_only_the_outputs_that_sample_it():
+    """A NaN pixel reaches only outputs with a tap of non-zero weight on it: a subset of deform_conv2d's NaNs
+    (which also multiplies in-image corners of weight 0), never the whole map, also for pixel 0, where the plan
+    parks the corners that read zero."""
+    cam = Equirectangular(width=32, height=16)
+    m = ProjectedConv2d(2, 3, 3, padding=1, camera=cam)
+    ref = ProjectedConv2d(2, 3, 3, padding=1, camera=cam, backend="torchvision")
+    ref.load_state_dict(m.state_dict())
+    for y, x in ((4, 5), (0, 0), (7, 15)):
+        img = torch.randn(1, 2, 8, 16)
+        img[0, 1, y, x] = float("nan")
+        with torch.no_grad():
+            bad = torch.isnan(m(img))
+            assert not (bad & ~torch.isnan(ref(img))).any() and 0 < int(bad.sum()) < bad.numel() // 4
+
+
+# -- the build --------------------------------------------------------------------------------------------
+
+def test_status_names_the_kernel_and_the_cached_file():
+    st = native.status()
+    assert st["available"] and st["kernel"] in ("avx2", "blas") and st["reason"] == ""
+    assert st["path"].is_file() and st["path"].name.startswith("fixed_conv-")
+
+
+def test_a_second_build_reuses_the_cached_library(tmp_path, monkeypatch):
+    monkeypatch.setenv("OMNIDL_CACHE_DIR", str(tmp_path))
+    native.reset()
+    try:
+        first = native.status()["path"]
+        assert first.parent == tmp_path / "native"
+        stamp = first.stat().st_mtime_ns
+        native.reset()
+        assert native.status()["path"] == first and first.stat().st_mtime_ns == stamp
+        assert [p.name for p in first.parent.iterdir()] == [first.name]  # no temporary file left behind
+    finally:
+        native.reset()
+
+
+def test_no_compiler_warns_once_and_the_layer_runs_the_tiled_path(monkeypatch, tmp_path):
+    monkeypatch.setenv("CC", "no-such-compiler-omnidl")
+    monkeypatch.setenv("OMNIDL_CACHE_DIR", str(tmp_path))
+    native.reset()
+    try:
+        with pytest.warns(RuntimeWarning, match=r"native .* unavailable \(no C compiler found \(CC=no-such"):
+            assert native.library() is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # once per process
+            m = ProjectedConv2d(2, 3, 3, padding=1, camera=Equirectangular(width=16, height=8))
+            y = m(torch.randn(1, 2, 4, 8, requires_grad=True))
+        assert type(y.grad_fn).__name__.startswith(_TiledConv.__name__)
+        assert native.status()["reason"].startswith("no C compiler")
+    finally:
+        native.reset()
+
+
+def test_a_failing_compile_warns_with_the_compiler_message(monkeypatch, tmp_path):
+    script = tmp_path / "badcc"
+    script.write_text("#!/bin/sh\necho 'fatal: cannot compile here' >&2\nexit 3\n")
+    script.chmod(0o755)
+    monkeypatch.setenv("CC", str(script))
+    monkeypatch.setenv("OMNIDL_CACHE_DIR", str(tmp_path / "cache"))
+    native.reset()
+    try:
+        with pytest.warns(RuntimeWarning, match=r"failed on fixed_conv.c \(exit 3\): fatal: cannot compile here"):
+            assert native.library() is None
+        assert not [p for p in (tmp_path / "cache" / "native").iterdir()]  # the temporary file is removed
+    finally:
+        native.reset()
+
+
+def test_disabled_by_environment_without_warning(monkeypatch):
+    monkeypatch.setenv("OMNIDL_NATIVE", "0")
+    native.reset()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert native.library() is None
+        assert native.status() == {"available": False, "kernel": None, "path": None,
+                                   "reason": "disabled by OMNIDL_NATIVE"}
+    finally:
+        native.reset()
+
+
+def test_the_source_ships_with_the_package():
+    assert native.SOURCE.is_file() and os.access(native.SOURCE, os.R_OK)
+
+
+def test_the_blas_build_for_cpus_without_avx2(monkeypatch, tmp_path):
+    """Built for plain x86-64 (no AVX2/FMA) the kernel's products call BLAS sgemm_; same results."""
+    if os.uname().machine != "x86_64":
+        pytest.skip("x86-64 only")
+    monkeypatch.setattr(native, "FLAGS", [f if f != "-march=native" else "-march=x86-64" for f in native.FLAGS])
+    monkeypatch.setenv("OMNIDL_CACHE_DIR", str(tmp_path))
+    native.reset()
+    try:
+        assert native.status()["kernel"] == "blas"
+        torch.manual_seed(3)
+        cam = Equirectangular(width=40, height=20)
+        m = ProjectedConv2d(7, 17, 3, padding=1, camera=cam)
+        cols = ProjectedConv2d(7, 17, 3, padding=1, camera=cam, chunk_positions=11)
+        cols.load_state_dict(m.state_dict())
+        x = torch.randn(2, 7, 10, 20)
+        for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
+            _close(a, b, name)
+    finally:
+        native.reset()
