@@ -6,14 +6,14 @@ matrix, the tiles of :mod:`.tiled` and their memory traffic never exist. ``m`` i
 :data:`BLOCK_BYTES`. The sums are those of the column path (:mod:`.sampling`) in another order (float32
 rounding).
 
-Backward, per block: ``grad_W += A^T grad_out`` on re-gathered taps, and ``grad_X += S^T (grad_out Wm^T)``
-scattered straight from the block (no CSR transposes are built). Nothing but the input rows and ``Wm`` is kept
+Backward: ``grad_W += A^T grad_out`` on re-gathered taps, then ``grad_X += S^T (grad_out Wm^T)`` scattered
+straight from each block (no CSR transposes are built). Nothing but the input rows and the weight is kept
 between forward and backward.
 
-Threads: as the other CPU paths, the work is split among the single-threaded workers of
-:func:`.sampling._run_split` (one join per call); each worker runs whole ranges of output positions in one
-native call (which releases the GIL). Each worker accumulates the input gradient privately, as in the column
-path.
+Threads: each call is one OpenMP parallel region of ``torch.get_num_threads()`` threads on PyTorch's own
+thread team (see :mod:`.native`), split by output positions (or, for small deep maps, by output channels);
+the input and weight gradients of the other threads are private copies added in at the end. The weight is
+packed once per call into the kernel's panels (kept, outside autograd, for an unchanged weight).
 """
 from __future__ import annotations
 
@@ -23,8 +23,8 @@ import torch
 from torch import Tensor
 
 from . import native
-from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows, _run_split, finish_backward,
-                       new_accumulators, save_columns_context, weight_matrix)
+from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows, finish_backward, new_accumulators,
+                       save_columns_context, weight_matrix)
 
 #: target size (bytes) of one block of gathered taps (the core's L2 cache holds it with the weight panel);
 #: 64 and 256 channels ran equally fast from ~100 kB to ~250 kB here
@@ -74,13 +74,6 @@ def _packed(lib, weight: Tensor, transpose: bool, keep: bool | None = None) -> T
     return wp
 
 
-def _ranges(B: int, P: int, block: int) -> list[tuple[int, int, int]]:
-    """``(image, start, end)`` tasks: each image's positions cut into one range per worker, whole blocks."""
-    parts = max(1, min(torch.get_num_threads(), -(-P // block)))
-    bounds = [min(P, -(-P * i // parts) // block * block) if i < parts else P for i in range(parts + 1)]
-    return [(b, s, e) for b in range(B) for s, e in zip(bounds, bounds[1:]) if e > s]
-
-
 def _ptr(t: Tensor | None) -> int | None:
     return None if t is None else t.data_ptr()
 
@@ -99,6 +92,7 @@ class _FusedConv(_FixedOffsetConv):
         B, C, H, W = x.shape
         Cout = weight.shape[0]
         Ho, Wo = plan.out_hw
+        P = Ho * Wo
         lib = native.library()
         channels_last = _is_channels_last(x)
         xr = _rows(x)
@@ -107,14 +101,9 @@ class _FusedConv(_FixedOffsetConv):
         b_ = None if bias is None else bias.detach().contiguous()
         # channels-last output rows written in place; an NCHW result is one layout copy of them
         rows = torch.empty(B, Cout, Ho, Wo, dtype=x.dtype, memory_format=torch.channels_last)
-        out = rows.permute(0, 2, 3, 1)
-        idx, wt = plan.idx.data_ptr(), plan.weight.data_ptr()
-
-        def work(part: list) -> None:
-            for b, s, e in part:
-                _call(lib.omnidl_fc_forward(xr[b].data_ptr(), C, idx, wt, plan.taps, s, e, _ptr(wm), _ptr(wp), Cout,
-                                            _ptr(b_), out[b].data_ptr(), Cout, block), "forward")
-        _run_split(_ranges(B, Ho * Wo, block), work, x.device)
+        _call(lib.omnidl_fc_forward(xr.data_ptr(), H * W * C, C, plan.idx.data_ptr(), plan.weight.data_ptr(),
+                                    plan.taps, P, B, _ptr(wm), _ptr(wp), Cout, _ptr(b_), rows.data_ptr(), P * Cout,
+                                    Cout, block, torch.get_num_threads()), "forward")
         save_columns_context(ctx, x, weight, bias, plan, block, xr, weight.detach())  # the backward packs it
         return rows if channels_last else rows.contiguous()
 
@@ -123,25 +112,19 @@ class _FusedConv(_FixedOffsetConv):
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
         plan: SamplingPlan = ctx.plan
         xr, weight = ctx.saved_tensors
-        B, C = ctx.in_shape[:2]
+        B, C, H, W = ctx.in_shape
         Cout = weight.shape[0]
-        Ho, Wo = plan.out_hw
+        P = plan.out_hw[0] * plan.out_hw[1]
         lib = native.library()
         g = _rows(grad_out)  # (B, P, Cout), copy-free for a channels-last gradient
-        idx, wt, block = plan.idx.data_ptr(), plan.weight.data_ptr(), ctx.positions
         need_x = ctx.needs_input_grad[0]
         wtp = _packed(lib, weight, transpose=True, keep=False) if need_x else None
         wm = weight_matrix(weight) if need_x and _blas(lib) else None
-
-        def work(part: list) -> tuple[Tensor | None, Tensor | None]:
-            gx, gwm = new_accumulators(ctx, Cout, g)
-            for b, s, e in part:
-                _call(lib.omnidl_fc_backward(None if xr is None else xr[b].data_ptr(), C, idx, wt, plan.taps, s, e,
-                                             _ptr(wm), _ptr(wtp), Cout, g[b].data_ptr(), Cout,
-                                             None if gx is None else gx[b].data_ptr(), _ptr(gwm), block), "backward")
-            return gx, gwm
-
-        return finish_backward(ctx, grad_out, _run_split(_ranges(B, Ho * Wo, block), work, grad_out.device))
+        gx, gwm = new_accumulators(ctx, Cout, g)
+        _call(lib.omnidl_fc_backward(_ptr(xr), H * W * C, C, plan.idx.data_ptr(), plan.weight.data_ptr(), plan.taps,
+                                     P, B, _ptr(wm), _ptr(wtp), Cout, g.data_ptr(), P * Cout, Cout, _ptr(gx),
+                                     H * W * C, _ptr(gwm), ctx.positions, torch.get_num_threads()), "backward")
+        return finish_backward(ctx, grad_out, [(gx, gwm)])
 
 
 def fused_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan, block: int | None = None) -> Tensor:

@@ -1,15 +1,18 @@
 """The native CPU kernel of the fixed-offset convolution (``csrc/fixed_conv.c``): built on first use, cached.
 
-The kernel is plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`,
-which releases the GIL during each call, so the convolution's worker threads run it in parallel. On x86-64
-with AVX2/FMA its products run on its own register-blocked kernel; elsewhere they call the BLAS ``sgemm_``
-that PyTorch's CPU library exports (MKL in the x86 wheels).
+The kernel is plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
+Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
+PyTorch has already loaded, so its parallel regions use PyTorch's own intra-op thread team (no second pool
+competing for the cores with spinning threads). On x86-64 with AVX2/FMA its products run on its own
+register-blocked kernel; elsewhere they call the BLAS ``sgemm_`` that PyTorch's CPU library exports (MKL in
+the x86 wheels).
 
-Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native``, linked against ``libtorch_cpu``.
-The shared library is cached under ``$OMNIDL_CACHE_DIR/native`` (default ``$XDG_CACHE_HOME/omnidl/native``,
-else ``~/.cache/omnidl/native``), named by a hash of the source, compiler, flags, torch build and CPU, and
-written atomically (compiled to a temporary name, then renamed), so concurrent processes never load a
-half-written file. ``OMNIDL_NATIVE=0`` disables the kernel.
+Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native -fopenmp`` (without ``-fopenmp`` where
+the compiler lacks it: then single-threaded), linked against ``libtorch_cpu``. The shared library is cached
+under ``$OMNIDL_CACHE_DIR/native`` (default ``$XDG_CACHE_HOME/omnidl/native``, else ``~/.cache/omnidl/native``),
+named by a hash of the source, compiler, flags, torch build and CPU, and written atomically (compiled to a
+temporary name, then renamed), so concurrent processes never load a half-written file. ``OMNIDL_NATIVE=0``
+disables the kernel.
 
 When the kernel cannot be built (no compiler, no ``sgemm_`` symbol), :func:`library` returns ``None``, warns
 once with the compiler's message, and :class:`~omnidl.nn.ProjectedConv2d` keeps its portable tiled path;
@@ -33,6 +36,8 @@ import torch
 
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 FLAGS = ["-O3", "-march=native", "-std=c11", "-fPIC", "-shared"]
+#: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
+OPENMP = ["-fopenmp"]
 
 DISABLED = "disabled by OMNIDL_NATIVE"
 
@@ -65,15 +70,21 @@ def _cpu_id() -> str:
 
 
 def _build(cc: list[str], torch_lib: str) -> Path:
-    """Compile :data:`SOURCE` unless a matching cached build exists; the path of the shared library."""
+    """Compile :data:`SOURCE` unless a matching cached build exists (with OpenMP where the compiler has it, else
+    without); the path of the shared library."""
     version = subprocess.run([*cc, "--version"], capture_output=True, text=True, timeout=60).stdout
     link = [f"-L{torch_lib}", "-ltorch_cpu", f"-Wl,-rpath,{torch_lib}"]
-    key = hashlib.sha256("\0".join([SOURCE.read_text(), " ".join(cc), version, " ".join(FLAGS + link),
-                                    torch.__version__, _cpu_id(), platform.machine()]).encode()).hexdigest()[:16]
-    for folder in (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{os.getuid()}"):
-        target = folder / f"fixed_conv-{key}.so"
-        if target.is_file():
-            return target
+    folders = (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{os.getuid()}")
+    variants = []
+    for flags in (FLAGS + OPENMP, FLAGS):
+        key = hashlib.sha256("\0".join([SOURCE.read_text(), " ".join(cc), version, " ".join(flags + link),
+                                         torch.__version__, _cpu_id(), platform.machine()]).encode()).hexdigest()[:16]
+        variants.append((flags, f"fixed_conv-{key}.so"))
+        for folder in folders:
+            if (folder / variants[-1][1]).is_file():
+                return folder / variants[-1][1]
+    error = ""
+    for folder in folders:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=".build-", suffix=".so", dir=folder)
@@ -81,32 +92,35 @@ def _build(cc: list[str], torch_lib: str) -> Path:
         except OSError:
             continue  # not writable: try the next folder
         try:
-            run = subprocess.run([*cc, *FLAGS, str(SOURCE), "-o", tmp, *link], capture_output=True, text=True,
-                                 timeout=300)
-            if run.returncode != 0:
-                raise RuntimeError(f"{' '.join(cc)} failed on {SOURCE.name} (exit {run.returncode}): "
-                                   f"{(run.stderr or run.stdout).strip()[-800:]}")
-            os.replace(tmp, target)
+            for flags, name in variants:
+                run = subprocess.run([*cc, *flags, str(SOURCE), "-o", tmp, *link], capture_output=True, text=True,
+                                     timeout=300)
+                if run.returncode == 0:
+                    os.replace(tmp, folder / name)
+                    return folder / name
+                error = (f"{' '.join(cc)} failed on {SOURCE.name} (exit {run.returncode}): "
+                         f"{(run.stderr or run.stdout).strip()[-800:]}")
         finally:
             if os.path.exists(tmp):
                 os.unlink(tmp)
-        return target
-    raise RuntimeError(f"no writable folder for the built kernel (tried {cache_dir()} and the temp folder)")
+        raise RuntimeError(error)
+    raise RuntimeError(f"no writable folder for the built kernel (tried {folders[0]} and {folders[1]})")
 
 
 def _load(path: Path) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(path))
     p, i, n = ctypes.c_void_p, ctypes.c_int, ctypes.c_int64
-    lib.omnidl_fc_forward.argtypes = [p, i, p, p, i, n, n, p, p, i, p, p, n, n]
+    lib.omnidl_fc_forward.argtypes = [p, n, i, p, p, i, n, i, p, p, i, p, p, n, n, n, i]
     lib.omnidl_fc_forward.restype = i
-    lib.omnidl_fc_backward.argtypes = [p, i, p, p, i, n, n, p, p, i, p, n, p, p, n]
+    lib.omnidl_fc_backward.argtypes = [p, n, i, p, p, i, n, i, p, p, i, p, n, n, p, n, p, n, i]
     lib.omnidl_fc_backward.restype = i
     lib.omnidl_fc_pack.argtypes = [p, i, i, i, i, p]
     lib.omnidl_fc_pack.restype = None
     lib.omnidl_fc_packed_floats.argtypes = [i, i]
     lib.omnidl_fc_packed_floats.restype = n
-    lib.omnidl_fc_kernel.argtypes = []
-    lib.omnidl_fc_kernel.restype = i
+    for name in ("omnidl_fc_kernel", "omnidl_fc_openmp"):
+        getattr(lib, name).argtypes = []
+        getattr(lib, name).restype = i
     return lib
 
 
@@ -137,10 +151,11 @@ def library() -> ctypes.CDLL | None:
 
 
 def status() -> dict:
-    """``{"available", "kernel" ("avx2" | "blas" | None), "path", "reason"}`` of the native kernel."""
+    """``{"available", "kernel" ("avx2" | "blas" | None), "openmp", "path", "reason"}`` of the native kernel."""
     lib = library()
     kernel = None if lib is None else ("avx2" if lib.omnidl_fc_kernel() else "blas")
-    return {"available": lib is not None, "kernel": kernel, "path": _STATE.get("path"), "reason": _STATE["reason"]}
+    return {"available": lib is not None, "kernel": kernel, "openmp": lib is not None and bool(lib.omnidl_fc_openmp()),
+            "path": _STATE.get("path"), "reason": _STATE["reason"]}
 
 
 def reset() -> None:

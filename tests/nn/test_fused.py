@@ -11,7 +11,7 @@ import torch
 from omnidl.cameras import Equirectangular, get_camera_class
 from omnidl.nn import ProjectedConv2d, fixed_offset_conv2d, native
 from omnidl.nn import fused as fused_module
-from omnidl.nn.fused import _FusedConv, _ranges, block_positions, fused_conv2d, fused_supported
+from omnidl.nn.fused import _FusedConv, block_positions, fused_conv2d, fused_supported
 from omnidl.nn.projected_conv import get_plan
 from omnidl.nn.sampling import _FixedOffsetConv
 from omnidl.nn.tiled import _TiledConv
@@ -110,43 +110,32 @@ def test_any_block_length_gives_the_same_result(block):
         _close(a, b, f"gradients, block={block}")
 
 
-def test_worker_split_equals_one_worker():
-    """Ranges split among 2 workers (private gradient accumulators, summed) equal one worker's result."""
+@pytest.mark.parametrize("hw,block", [((12, 24), 12), ((12, 24), 6), ((4, 8), 24)])
+def test_thread_split_equals_one_thread(hw, block):
+    """2 and 3 threads (positions split across images and mid-image; private gradient copies added in) equal one
+    thread; on a small map (fewer positions than 2 blocks per thread) the forward splits the output channels."""
     torch.manual_seed(5)
-    cam = Equirectangular(width=48, height=24)
-    m = ProjectedConv2d(4, 6, 3, padding=1, camera=cam)
-    plan = get_plan(m.geometry_key((12, 24)), torch.device("cpu"), torch.float32)
-    x = torch.randn(2, 4, 12, 24)
-    g = torch.randn(2, 6, 12, 24)
+    H, W = hw
+    cam = Equirectangular(width=2 * W, height=2 * H)
+    m = ProjectedConv2d(4, 40, 3, padding=1, camera=cam)  # 40 channels: 3 kernel panels, the last one partial
+    plan = get_plan(m.geometry_key(hw), torch.device("cpu"), torch.float32)
+    x = torch.randn(3, 4, H, W)
+    g = torch.randn(3, 40, H, W)
     runs = []
     threads = torch.get_num_threads()
     try:
-        for n in (1, 2):
+        for n in (1, 2, 3):
             torch.set_num_threads(n)
             xi = x.clone().requires_grad_(True)
-            y = fused_conv2d(xi, m.weight, m.bias, plan, block=12)
-            runs.append((y, *torch.autograd.grad(y, [xi, m.weight], g)))
+            y = fused_conv2d(xi, m.weight, m.bias, plan, block=block)
+            runs.append((y, *torch.autograd.grad(y, [xi, m.weight, m.bias], g)))
     finally:
         torch.set_num_threads(threads)
-    for a, b, name in zip(*runs, ("output", "input grad", "weight grad")):
-        _close(a, b, name)
-
-
-def test_ranges_cover_every_position_once_in_whole_blocks():
-    threads = torch.get_num_threads()
-    try:
-        for n in (1, 2, 3, 8):
-            torch.set_num_threads(n)
-            for B, P, block in ((1, 288, 12), (2, 100, 6), (3, 5, 96), (1, 32768, 96)):
-                r = _ranges(B, P, block)
-                for b in range(B):
-                    spans = sorted((s, e) for bb, s, e in r if bb == b)
-                    assert spans[0][0] == 0 and spans[-1][1] == P
-                    assert all(e0 == s1 for (_, e0), (s1, _) in zip(spans, spans[1:]))
-                    assert all(s % block == 0 for s, _ in spans)
-                    assert len(spans) <= n
-    finally:
-        torch.set_num_threads(threads)
+    y_cols = fixed_offset_conv2d(x, m.weight, m.bias, plan)
+    _close(runs[0][0], y_cols, "one thread vs columns")
+    for run in runs[1:]:
+        for a, b, name in zip(run, runs[0], ("output", "input grad", "weight grad", "bias grad")):
+            _close(a, b, name)
 
 
 def test_block_positions_are_whole_kernel_tiles_near_the_target():
@@ -202,6 +191,7 @@ def test_a_nan_pixel_reaches_only_the_outputs_that_sample_it():
 def test_status_names_the_kernel_and_the_cached_file():
     st = native.status()
     assert st["available"] and st["kernel"] in ("avx2", "blas") and st["reason"] == ""
+    assert st["openmp"]  # gcc here has OpenMP: the kernel runs on PyTorch's thread team
     assert st["path"].is_file() and st["path"].name.startswith("fixed_conv-")
 
 
@@ -258,7 +248,7 @@ def test_disabled_by_environment_without_warning(monkeypatch):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             assert native.library() is None
-        assert native.status() == {"available": False, "kernel": None, "path": None,
+        assert native.status() == {"available": False, "kernel": None, "openmp": False, "path": None,
                                    "reason": "disabled by OMNIDL_NATIVE"}
     finally:
         native.reset()
@@ -283,6 +273,29 @@ def test_the_blas_build_for_cpus_without_avx2(monkeypatch, tmp_path):
         cols = ProjectedConv2d(7, 17, 3, padding=1, camera=cam, chunk_positions=11)
         cols.load_state_dict(m.state_dict())
         x = torch.randn(2, 7, 10, 20)
+        for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
+            _close(a, b, name)
+    finally:
+        native.reset()
+
+
+def test_a_compiler_without_openmp_builds_the_single_threaded_kernel(monkeypatch, tmp_path):
+    script = tmp_path / "cc-no-openmp"
+    script.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = -fopenmp ] && { echo "unsupported option" >&2; exit 1; }; '
+                      'done\nexec cc "$@"\n')
+    script.chmod(0o755)
+    monkeypatch.setenv("CC", str(script))
+    monkeypatch.setenv("OMNIDL_CACHE_DIR", str(tmp_path / "cache"))
+    native.reset()
+    try:
+        st = native.status()
+        assert st["available"] and not st["openmp"]
+        torch.manual_seed(4)
+        cam = Equirectangular(width=40, height=20)
+        m = ProjectedConv2d(5, 9, 3, padding=1, camera=cam)
+        cols = ProjectedConv2d(5, 9, 3, padding=1, camera=cam, chunk_positions=11)
+        cols.load_state_dict(m.state_dict())
+        x = torch.randn(2, 5, 10, 20)
         for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
             _close(a, b, name)
     finally:

@@ -16,6 +16,9 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
 
 extern void sgemm_(const char *ta, const char *tb, const int *m, const int *n, const int *k, const float *alpha,
                    const float *a, const int *lda, const float *b, const int *ldb, const float *beta, float *c,
@@ -175,6 +178,15 @@ static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_
 /* 1 when the products run on this file's AVX2/FMA kernel, 0 when they call BLAS sgemm */
 int omnidl_fc_kernel(void) { return HAVE_KERNEL; }
 
+/* 1 when built with OpenMP (the calls run on several threads), else 0 */
+int omnidl_fc_openmp(void) {
+#ifdef _OPENMP
+    return 1;
+#else
+    return 0;
+#endif
+}
+
 /* floats of the packed panels of a (k, n) matrix (0 without this file's kernel: the BLAS path packs nothing) */
 int64_t omnidl_fc_packed_floats(int k, int n) { return HAVE_KERNEL ? (int64_t)k * ((n + 15) / 16) * 16 : 0; }
 
@@ -218,89 +230,202 @@ void omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, floa
 #endif
 }
 
-/* out rows [p0, p1) = bias + gathered taps @ Wm, in blocks of `block` positions. The kernel path reads `wp`
- * (omnidl_fc_pack, transpose = 0: packed once by the caller for all its threads), the BLAS path `wm` (K*C, cout)
- * row-major. Returns 0, 1 when the block buffer cannot be allocated, 2 when the operand is missing. */
-int omnidl_fc_forward(const float *x, int C, const int32_t *idx, const float *w, int K, int64_t p0, int64_t p1,
-                      const float *wm, const float *wp, int cout, const float *bias, float *out, int64_t ldo,
-                      int64_t block) {
-    const int KC = K * C;
-    if (HAVE_KERNEL ? !wp : !wm) return 2;
-    float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
-    if (!A) return 1;
-#if !HAVE_KERNEL
-    const int prev = single_blas_thread();
-#endif
-    for (int64_t s = p0; s < p1; s += block) {
-        const int m = (int)((p1 - s) < block ? (p1 - s) : block);
-        float *o = out + s * ldo;
-        gather(x, C, idx, w, s * K, (s + m) * K, A);
-        int acc = 0;
-        if (bias) {
-            for (int i = 0; i < m; ++i) memcpy(o + i * ldo, bias, sizeof(float) * (size_t)cout);
-            acc = 1;
-        }
-#if HAVE_KERNEL
-        (void)wm;
-        gemm_packed(m, cout, KC, A, KC, 1, wp, o, ldo, acc);  /* o (m, cout) (+)= A (m, KC) Wm */
-#else
-        (void)wp;
-        blas_gemm('N', 'N', cout, m, KC, acc ? 1.0f : 0.0f, wm, cout, A, KC, o, (int)ldo);
-#endif
-    }
-#if !HAVE_KERNEL
-    restore_blas_threads(prev);
-#endif
-    free(A);
-    return 0;
+static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
+
+/* start of thread t's share of `total` positions (whole blocks; t == nt gives the end) */
+static int64_t span_edge(int64_t total, int t, int nt, int64_t block) {
+    return t >= nt ? total : (total * t / nt) / block * block;
 }
 
-/* Gradients of output rows [p0, p1): gw += A^T gout (A re-gathered), gx += S^T (gout Wm^T). gx or gw may be
- * NULL when that gradient is not needed. The kernel path reads `wtp` (omnidl_fc_pack, transpose = 1), the BLAS
- * path `wm`. Returns 0, 1 when a buffer cannot be allocated, 2 when the operand is missing. */
-int omnidl_fc_backward(const float *x, int C, const int32_t *idx, const float *w, int K, int64_t p0, int64_t p1,
-                       const float *wm, const float *wtp, int cout, const float *gout, int64_t ldg, float *gx,
-                       float *gw, int64_t block) {
+/* Forward of B images: out rows = bias + gathered taps @ Wm, in blocks of `block` positions, on `nthreads`
+ * OpenMP threads (the process's OpenMP runtime: PyTorch's, so this is one more parallel region of its thread
+ * team). Each thread takes a share of the B*P positions, or, when there are too few positions for that
+ * (small deep feature maps), runs every position for its share of the output channels, so that each thread
+ * streams only its part of the weight. The kernel path reads `wp` (omnidl_fc_pack, transpose = 0), the BLAS
+ * path `wm` (K*C, cout) row-major. Image b's input rows start at x + b*x_img, its output rows at
+ * out + b*out_img. Returns 0, 1 when a buffer cannot be allocated, 2 when the operand is missing. */
+int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, const float *w, int K, int64_t P,
+                      int B, const float *wm, const float *wp, int cout, const float *bias, float *out,
+                      int64_t out_img, int64_t ldo, int64_t block, int nthreads) {
+    const int KC = K * C;
+    if (HAVE_KERNEL ? !wp : !wm) return 2;
+    const int64_t total = (int64_t)B * P;
+    const int panels = (cout + 15) / 16;
+    const int by_channels = HAVE_KERNEL && nthreads > 1 && total < 2 * block * nthreads && panels >= nthreads;
+    int err = 0;
+#pragma omp parallel num_threads(nthreads) reduction(| : err)
+    {
+        int t = 0, nt = 1;
+#ifdef _OPENMP
+        t = omp_get_thread_num();
+        nt = omp_get_num_threads();
+#endif
+        int64_t s0 = 0, s1 = total;
+        int c0 = 0, c1 = cout;
+        if (by_channels) {
+            c0 = 16 * (panels * t / nt);
+            c1 = (int)min64(cout, 16 * (panels * (t + 1) / nt));
+        } else {
+            s0 = span_edge(total, t, nt, block);
+            s1 = span_edge(total, t + 1, nt, block);
+        }
+        float *A = NULL;
+        if (s1 > s0 && c1 > c0 && !(A = (float *)malloc(sizeof(float) * (size_t)(block * KC)))) err = 1;
+        if (A) {
+#if !HAVE_KERNEL
+            const int prev = single_blas_thread();
+#endif
+            for (int64_t s = s0; s < s1;) {
+                const int64_t b = s / P, p = s % P;
+                const int m = (int)min64(block, min64(s1 - s, P - p));
+                float *o = out + b * out_img + p * ldo + c0;
+                gather(x + b * x_img, C, idx, w, p * K, (p + m) * K, A);
+                int acc = 0;
+                if (bias) {
+                    for (int i = 0; i < m; ++i) memcpy(o + i * ldo, bias + c0, sizeof(float) * (size_t)(c1 - c0));
+                    acc = 1;
+                }
+#if HAVE_KERNEL
+                (void)wm;  /* o (m, c1 - c0) (+)= A (m, KC) Wm[:, c0:c1] */
+                gemm_packed(m, c1 - c0, KC, A, KC, 1, wp + (int64_t)(c0 / 16) * KC * 16, o, ldo, acc);
+#else
+                (void)wp;
+                blas_gemm('N', 'N', cout, m, KC, acc ? 1.0f : 0.0f, wm, cout, A, KC, o, (int)ldo);
+#endif
+                s += m;
+            }
+#if !HAVE_KERNEL
+            restore_blas_threads(prev);
+#endif
+            free(A);
+        }
+    }
+    return err;
+}
+
+/* Backward of B images on `nthreads` OpenMP threads, each over its share of the positions in two passes (each
+ * keeps its large operand warm in the cache): gw += A^T gout on re-gathered taps, then gx += S^T (gout Wm^T)
+ * scattered straight from the block. Thread 0 accumulates into gw/gx; the others into private copies (of gx:
+ * only the band of input rows their positions touch), added in afterwards. gx (B images of gx_img floats) or gw
+ * (K*C, cout) may be NULL when that gradient is not needed. The kernel path reads `wtp` (omnidl_fc_pack,
+ * transpose = 1), the BLAS path `wm`. Returns 0, 1 when a buffer cannot be allocated, 2 when the operand is
+ * missing. */
+int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx, const float *w, int K, int64_t P,
+                       int B, const float *wm, const float *wtp, int cout, const float *gout, int64_t g_img,
+                       int64_t ldg, float *gx, int64_t gx_img, float *gw, int64_t block, int nthreads) {
     const int KC = K * C;
     if (gx && (HAVE_KERNEL ? !wtp : !wm)) return 2;
-    float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
-#if HAVE_KERNEL
-    (void)wm;
-    float *gp = (float *)malloc(sizeof(float) * (size_t)packed_floats((int)block, cout));
-    if (!A || !gp) { free(A); free(gp); return 1; }
-#else
-    (void)wtp;
-    if (!A) return 1;
-    const int prev = single_blas_thread();
+    const int64_t total = (int64_t)B * P, pixels = gx_img / C;
+    float **pgw = (float **)calloc((size_t)nthreads, sizeof(float *));
+    float **pgx = (float **)calloc((size_t)nthreads, sizeof(float *));
+    int64_t *lo = (int64_t *)calloc((size_t)nthreads, sizeof(int64_t));
+    int64_t *hi = (int64_t *)calloc((size_t)nthreads, sizeof(int64_t));
+    int err = !pgw || !pgx || !lo || !hi;
+    if (!err) {
+#pragma omp parallel num_threads(nthreads) reduction(| : err)
+        {
+            int t = 0, nt = 1;
+#ifdef _OPENMP
+            t = omp_get_thread_num();
+            nt = omp_get_num_threads();
 #endif
-    /* two passes, each over every block: the weight gradient, then the input gradient (each pass keeps its own
-     * large operand, gw or the packed Wm^T, warm in the cache) */
-    for (int64_t s = p0; gw && s < p1; s += block) {
-        const int m = (int)((p1 - s) < block ? (p1 - s) : block);
-        const float *g = gout + s * ldg;
-        gather(x, C, idx, w, s * K, (s + m) * K, A);
+            const int64_t s0 = span_edge(total, t, nt, block), s1 = span_edge(total, t + 1, nt, block);
+            float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
 #if HAVE_KERNEL
-        pack_b(m, cout, g, ldg, 1, gp);
-        gemm_packed(KC, cout, m, A, 1, KC, gp, gw, cout, 1);  /* gw (KC, cout) += A^T g */
+            (void)wm;
+            float *gp = (float *)malloc(sizeof(float) * (size_t)packed_floats((int)block, cout));
 #else
-        blas_gemm('N', 'T', cout, KC, m, 1.0f, g, (int)ldg, A, KC, gw, cout);
+            (void)wtp;
+            float *gp = NULL;
 #endif
+            int ok = A && (!HAVE_KERNEL || gp);
+            float *mygw = gw, *mygx = gx;  /* thread 0 writes the results directly */
+            int64_t mylo = 0, myhi = 0;    /* band of flat input rows (b * pixels + pixel) of this thread */
+            if (ok && gw && t > 0) ok = (mygw = (float *)calloc((size_t)KC * (size_t)cout, sizeof(float))) != NULL;
+            if (ok && gx && t > 0 && s1 > s0) {
+                mylo = INT64_MAX;
+                myhi = 0;
+                for (int64_t s = s0; s < s1; ++s) {
+                    const int64_t b = s / P, r0 = (s % P) * K;
+                    for (int64_t j = 4 * r0; j < 4 * (r0 + K); ++j) {
+                        if (w[j] == 0.0f) continue;
+                        const int64_t v = b * pixels + idx[j];
+                        if (v < mylo) mylo = v;
+                        if (v + 1 > myhi) myhi = v + 1;
+                    }
+                }
+                if (myhi <= mylo) mylo = myhi = 0;
+                mygx = NULL;
+                if (myhi > mylo)
+                    ok = (mygx = (float *)calloc((size_t)((myhi - mylo) * C), sizeof(float))) != NULL;
+            }
+            if (!ok) err = 1;
+            if (ok) {
+#if !HAVE_KERNEL
+                const int prev = single_blas_thread();
+#endif
+                for (int64_t s = s0; gw && s < s1;) {
+                    const int64_t b = s / P, p = s % P;
+                    const int m = (int)min64(block, min64(s1 - s, P - p));
+                    const float *g = gout + b * g_img + p * ldg;
+                    gather(x + b * x_img, C, idx, w, p * K, (p + m) * K, A);
+#if HAVE_KERNEL
+                    pack_b(m, cout, g, ldg, 1, gp);
+                    gemm_packed(KC, cout, m, A, 1, KC, gp, mygw, cout, 1);  /* gw (KC, cout) += A^T g */
+#else
+                    blas_gemm('N', 'T', cout, KC, m, 1.0f, g, (int)ldg, A, KC, mygw, cout);
+#endif
+                    s += m;
+                }
+                /* input gradient rows of image b start at base + b * gx_img (private copies are offset by mylo) */
+                float *base = (t == 0) ? gx : (mygx ? mygx - mylo * C : NULL);
+                for (int64_t s = s0; gx && base && s < s1;) {
+                    const int64_t b = s / P, p = s % P;
+                    const int m = (int)min64(block, min64(s1 - s, P - p));
+                    const float *g = gout + b * g_img + p * ldg;
+#if HAVE_KERNEL
+                    gemm_packed(m, KC, cout, g, ldg, 1, wtp, A, KC, 0);  /* A (m, KC) = g Wm^T */
+#else
+                    blas_gemm('T', 'N', KC, m, cout, 0.0f, wm, cout, g, (int)ldg, A, KC);
+#endif
+                    scatter(base + b * gx_img, C, idx, w, p * K, (p + m) * K, A);
+                    s += m;
+                }
+#if !HAVE_KERNEL
+                restore_blas_threads(prev);
+#endif
+            }
+            if (t > 0) {
+                pgw[t] = gw ? mygw : NULL;
+                pgx[t] = mygx;
+                lo[t] = mylo;
+                hi[t] = myhi;
+            }
+#pragma omp barrier
+            for (int k = 1; k < nt; ++k) {  /* add the private copies in, every thread on a slice of each */
+                if (pgw[k]) {
+                    const float *src = pgw[k];
+#pragma omp for schedule(static)
+                    for (int64_t e = 0; e < (int64_t)KC * cout; ++e) gw[e] += src[e];
+                }
+                if (pgx[k]) {
+                    const float *src = pgx[k];
+                    float *dst = gx + lo[k] * C;
+#pragma omp for schedule(static)
+                    for (int64_t e = 0; e < (hi[k] - lo[k]) * C; ++e) dst[e] += src[e];
+                }
+            }
+            free(A);
+            free(gp);
+            if (t > 0) {
+                if (gw) free(mygw);
+                free(mygx);
+            }
+        }
     }
-    for (int64_t s = p0; gx && s < p1; s += block) {
-        const int m = (int)((p1 - s) < block ? (p1 - s) : block);
-        const float *g = gout + s * ldg;
-#if HAVE_KERNEL
-        gemm_packed(m, KC, cout, g, ldg, 1, wtp, A, KC, 0);  /* A (m, KC) = g Wm^T */
-#else
-        blas_gemm('T', 'N', KC, m, cout, 0.0f, wm, cout, g, (int)ldg, A, KC);
-#endif
-        scatter(gx, C, idx, w, s * K, (s + m) * K, A);
-    }
-#if HAVE_KERNEL
-    free(gp);
-#else
-    restore_blas_threads(prev);
-#endif
-    free(A);
-    return 0;
+    free(pgw);
+    free(pgx);
+    free(lo);
+    free(hi);
+    return err;
 }
