@@ -31,14 +31,25 @@ from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows,
 BLOCK_BYTES = 224 * 1024
 #: fewest output positions per block (where the image has them)
 MIN_BLOCK = 24
+#: weights larger than this are read from memory, not cache, on every block (see :func:`block_positions`);
+#: measured here: 3.5 MB (770 -> 128 channels) ran best with small blocks, 14 MB (1536 -> 256) with one block
+BIG_WEIGHT_BYTES = 8 * 2 ** 20
+#: the largest block of gathered taps for such weights
+BIG_BLOCK_BYTES = 8 * 2 ** 20
 #: ``False`` turns the fused path off (the layer then takes the tiled path): benchmarks' in-process A/B
 ENABLED = True
 
 
-def block_positions(plan: SamplingPlan, channels: int) -> int:
+def block_positions(plan: SamplingPlan, channels: int, out_channels: int = 0, positions: int = 0) -> int:
     """Output positions per block: a multiple of the kernel's 6 rows with ``A`` about :data:`BLOCK_BYTES`, and
-    at least :data:`MIN_BLOCK` (each block streams the whole weight, so wide layers need some rows per pass)."""
-    return max(MIN_BLOCK, BLOCK_BYTES // (4 * plan.taps * channels) // 6 * 6)
+    at least :data:`MIN_BLOCK` (each block streams the whole weight). A weight over :data:`BIG_WEIGHT_BYTES`
+    (``out_channels`` given; deep layers, not cache-resident) is streamed from memory on every block, so there
+    the block takes all ``positions`` (the batch's), with ``A`` up to :data:`BIG_BLOCK_BYTES`."""
+    row = 4 * plan.taps * channels
+    block = max(MIN_BLOCK, BLOCK_BYTES // row // 6 * 6)
+    if row * out_channels > BIG_WEIGHT_BYTES and positions:
+        block = max(block, min(-(-positions // 6) * 6, max(6, BIG_BLOCK_BYTES // row // 6 * 6)))
+    return block
 
 
 # packed weights of inference calls, by weight tensor: (weak reference, version, data pointer, packed)
@@ -132,7 +143,7 @@ def fused_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingP
     output positions (default :func:`block_positions`); same contract and output memory format as
     :func:`.sampling.fixed_offset_conv2d`. Requires :func:`fused_supported`."""
     if block is None:
-        block = block_positions(plan, x.shape[1])
+        block = block_positions(plan, x.shape[1], weight.shape[0], x.shape[0] * plan.out_hw[0] * plan.out_hw[1])
     return _FusedConv.apply(x, weight, bias, plan, int(block))
 
 

@@ -146,6 +146,12 @@ def test_block_positions_are_whole_kernel_tiles_near_the_target():
         n = block_positions(plan, c)
         assert n >= fused_module.MIN_BLOCK and n % 6 == 0
         assert n == fused_module.MIN_BLOCK or n * 9 * c * 4 <= fused_module.BLOCK_BYTES
+    # a cache-resident weight keeps the small block; a weight streamed from memory takes all positions at once,
+    # up to the cap on the gathered block
+    assert block_positions(plan, 256, 256, 32768) == block_positions(plan, 256)
+    assert block_positions(plan, 2048, 512, 32) == 36
+    big = block_positions(plan, 2048, 512, 10 ** 6)
+    assert big % 6 == 0 and big * 9 * 2048 * 4 <= fused_module.BIG_BLOCK_BYTES < (big + 6) * 9 * 2048 * 4
 
 
 def test_layer_dispatch():
