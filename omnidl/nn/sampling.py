@@ -23,8 +23,9 @@ every image. Outputs and
 input gradients keep the memory format of the input (channels-last is copy-free; NCHW costs
 one layout copy of the input, one per output chunk and one of the input gradient).
 
-On CPU float32, :class:`~omnidl.nn.ProjectedConv2d` runs the forward through :mod:`.tiled` instead (the
-same taps convolved by oneDNN, faster than the GEMM of the columns) and this backward.
+On CPU float32, :class:`~omnidl.nn.ProjectedConv2d` runs the native fused kernel of :mod:`.fused` instead
+(gather and product in one pass over cache-resident blocks); where that kernel cannot be built, the forward of
+:mod:`.tiled` (the same taps convolved by oneDNN) and this backward.
 
 :func:`deform_conv2d_reference` runs ``torchvision.ops.deform_conv2d`` with the same
 offsets and mask (circular padding of the input for ``wrap``): the test reference.

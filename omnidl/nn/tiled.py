@@ -1,4 +1,7 @@
-"""Fixed-offset convolution as a dense strided convolution of its gathered taps (CPU float32 path).
+"""Fixed-offset convolution as a dense strided convolution of its gathered taps (portable CPU float32 path).
+
+:class:`~omnidl.nn.ProjectedConv2d` takes this path where the native kernel of :mod:`.fused` is unavailable (no C
+compiler, ``OMNIDL_NATIVE=0``) and under ``torch.compile``/``torch.export``, which trace its torch ops.
 
 The taps of ``r`` whole output rows are gathered into a channels-last *tile* ``(1, C, r*kh, Wo*kw)``
 whose pixel ``(oy*kh + i, ox*kw + j)`` holds tap ``(i, j)`` of output ``(oy, ox)``. The layer's weight
