@@ -110,21 +110,23 @@ def test_any_block_length_gives_the_same_result(block):
         _close(a, b, f"gradients, block={block}")
 
 
-@pytest.mark.parametrize("hw,block", [((12, 24), 12), ((12, 24), 6), ((4, 8), 24)])
-def test_thread_split_equals_one_thread(hw, block):
-    """2 and 3 threads (positions split across images and mid-image; private gradient copies added in) equal one
-    thread; on a small map (fewer positions than 2 blocks per thread) the forward splits the output channels."""
+@pytest.mark.parametrize("hw,batch,block,counts", [((12, 24), 3, 12, (1, 2, 3)), ((12, 24), 3, 6, (1, 2, 3)),
+                                                   ((4, 8), 3, 24, (1, 2, 3)), ((2, 4), 1, 6, (1, 5, 16))])
+def test_thread_split_equals_one_thread(hw, batch, block, counts):
+    """Several threads (positions split across images and mid-image; private gradient copies added in) equal one
+    thread; on a small map (fewer positions than 2 blocks per thread) the forward splits the output channels;
+    with more threads than positions some threads have nothing to do."""
     torch.manual_seed(5)
     H, W = hw
     cam = Equirectangular(width=2 * W, height=2 * H)
     m = ProjectedConv2d(4, 40, 3, padding=1, camera=cam)  # 40 channels: 3 kernel panels, the last one partial
     plan = get_plan(m.geometry_key(hw), torch.device("cpu"), torch.float32)
-    x = torch.randn(3, 4, H, W)
-    g = torch.randn(3, 40, H, W)
+    x = torch.randn(batch, 4, H, W)
+    g = torch.randn(batch, 40, H, W)
     runs = []
     threads = torch.get_num_threads()
     try:
-        for n in (1, 2, 3):
+        for n in counts:
             torch.set_num_threads(n)
             xi = x.clone().requires_grad_(True)
             y = fused_conv2d(xi, m.weight, m.bias, plan, block=block)

@@ -232,10 +232,8 @@ void omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, floa
 
 static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
 
-/* start of thread t's share of `total` positions (whole blocks; t == nt gives the end) */
-static int64_t span_edge(int64_t total, int t, int nt, int64_t block) {
-    return t >= nt ? total : (total * t / nt) / block * block;
-}
+/* start of thread t's share of `total` positions (t == nt gives the end); blocks run within each share */
+static int64_t span_edge(int64_t total, int t, int nt) { return t >= nt ? total : total * t / nt; }
 
 /* Forward of B images: out rows = bias + gathered taps @ Wm, in blocks of `block` positions, on `nthreads`
  * OpenMP threads (the process's OpenMP runtime: PyTorch's, so this is one more parallel region of its thread
@@ -266,8 +264,8 @@ int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, 
             c0 = 16 * (panels * t / nt);
             c1 = (int)min64(cout, 16 * (panels * (t + 1) / nt));
         } else {
-            s0 = span_edge(total, t, nt, block);
-            s1 = span_edge(total, t + 1, nt, block);
+            s0 = span_edge(total, t, nt);
+            s1 = span_edge(total, t + 1, nt);
         }
         float *A = NULL;
         if (s1 > s0 && c1 > c0 && !(A = (float *)malloc(sizeof(float) * (size_t)(block * KC)))) err = 1;
@@ -329,7 +327,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
             t = omp_get_thread_num();
             nt = omp_get_num_threads();
 #endif
-            const int64_t s0 = span_edge(total, t, nt, block), s1 = span_edge(total, t + 1, nt, block);
+            const int64_t s0 = span_edge(total, t, nt), s1 = span_edge(total, t + 1, nt);
             float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
 #if HAVE_KERNEL
             (void)wm;
@@ -339,9 +337,11 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
             float *gp = NULL;
 #endif
             int ok = A && (!HAVE_KERNEL || gp);
-            float *mygw = gw, *mygx = gx;  /* thread 0 writes the results directly */
-            int64_t mylo = 0, myhi = 0;    /* band of flat input rows (b * pixels + pixel) of this thread */
-            if (ok && gw && t > 0) ok = (mygw = (float *)calloc((size_t)KC * (size_t)cout, sizeof(float))) != NULL;
+            /* thread 0 writes the results directly, the others private copies (none for an empty share) */
+            float *mygw = t == 0 ? gw : NULL, *mygx = t == 0 ? gx : NULL;
+            int64_t mylo = 0, myhi = 0;  /* band of flat input rows (b * pixels + pixel) of this thread */
+            if (ok && gw && t > 0 && s1 > s0)
+                ok = (mygw = (float *)calloc((size_t)KC * (size_t)cout, sizeof(float))) != NULL;
             if (ok && gx && t > 0 && s1 > s0) {
                 mylo = INT64_MAX;
                 myhi = 0;
@@ -355,7 +355,6 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
                     }
                 }
                 if (myhi <= mylo) mylo = myhi = 0;
-                mygx = NULL;
                 if (myhi > mylo)
                     ok = (mygx = (float *)calloc((size_t)((myhi - mylo) * C), sizeof(float))) != NULL;
             }
@@ -364,7 +363,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
 #if !HAVE_KERNEL
                 const int prev = single_blas_thread();
 #endif
-                for (int64_t s = s0; gw && s < s1;) {
+                for (int64_t s = s0; mygw && s < s1;) {
                     const int64_t b = s / P, p = s % P;
                     const int m = (int)min64(block, min64(s1 - s, P - p));
                     const float *g = gout + b * g_img + p * ldg;
@@ -378,8 +377,8 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
                     s += m;
                 }
                 /* input gradient rows of image b start at base + b * gx_img (private copies are offset by mylo) */
-                float *base = (t == 0) ? gx : (mygx ? mygx - mylo * C : NULL);
-                for (int64_t s = s0; gx && base && s < s1;) {
+                float *base = (t == 0 || !mygx) ? mygx : mygx - mylo * C;
+                for (int64_t s = s0; base && s < s1;) {
                     const int64_t b = s / P, p = s % P;
                     const int m = (int)min64(block, min64(s1 - s, P - p));
                     const float *g = gout + b * g_img + p * ldg;
@@ -396,7 +395,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
 #endif
             }
             if (t > 0) {
-                pgw[t] = gw ? mygw : NULL;
+                pgw[t] = mygw;
                 pgx[t] = mygx;
                 lo[t] = mylo;
                 hi[t] = myhi;
@@ -418,7 +417,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
             free(A);
             free(gp);
             if (t > 0) {
-                if (gw) free(mygw);
+                free(mygw);
                 free(mygx);
             }
         }
