@@ -63,7 +63,7 @@ def _blas(lib) -> bool:
 
 def _packed(lib, weight: Tensor, transpose: bool, keep: bool | None = None) -> Tensor | None:
     """``weight (Cout, C, kh, kw)`` as the kernel's panels of ``Wm (kh*kw*C, Cout)`` (or, with ``transpose``, of
-    ``Wm^T``), packed once for all workers; ``None`` on the BLAS build. With ``keep`` (default: outside autograd)
+    ``Wm^T``), packed once for all threads; ``None`` on the BLAS build. With ``keep`` (default: outside autograd)
     the packing of an unchanged ``weight`` is kept: inference re-uses it on every call (a wide layer's weight is
     tens of MB)."""
     if _blas(lib):
