@@ -78,7 +78,8 @@ def _packed(lib, weight: Tensor, transpose: bool, keep: bool | None = None) -> T
         return hit[3]
     wc = weight.detach().contiguous()
     wp = torch.empty(lib.omnidl_fc_packed_floats(*((Cout, KC) if transpose else (KC, Cout))), dtype=torch.float32)
-    lib.omnidl_fc_pack(wc.data_ptr(), Cout, C, kh * kw, int(transpose), wp.data_ptr())
+    _call(lib.omnidl_fc_pack(wc.data_ptr(), Cout, C, kh * kw, int(transpose), wp.data_ptr(), torch.get_num_threads()),
+          "weight packing")
     if keep:
         _PACKED[key] = (weakref.ref(weight, lambda _, k=key: _PACKED.pop(k, None)), weight._version,
                         weight.data_ptr(), wp)
@@ -91,7 +92,7 @@ def _ptr(t: Tensor | None) -> int | None:
 
 def _call(rc: int, what: str) -> None:
     if rc == 1:
-        raise MemoryError(f"fixed-offset convolution ({what}): the native kernel could not allocate its block buffer")
+        raise MemoryError(f"fixed-offset convolution ({what}): the native kernel could not allocate its buffers")
     if rc != 0:
         raise RuntimeError(f"fixed-offset convolution ({what}): the native kernel returned {rc} (missing operand)")
 

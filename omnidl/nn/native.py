@@ -114,8 +114,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_fc_forward.restype = i
     lib.omnidl_fc_backward.argtypes = [p, n, i, p, p, i, n, i, p, p, i, p, n, n, p, n, p, n, i]
     lib.omnidl_fc_backward.restype = i
-    lib.omnidl_fc_pack.argtypes = [p, i, i, i, i, p]
-    lib.omnidl_fc_pack.restype = None
+    lib.omnidl_fc_pack.argtypes = [p, i, i, i, i, p, i]
+    lib.omnidl_fc_pack.restype = i
     lib.omnidl_fc_packed_floats.argtypes = [i, i]
     lib.omnidl_fc_packed_floats.restype = n
     for name in ("omnidl_fc_kernel", "omnidl_fc_openmp"):

@@ -111,11 +111,12 @@ def test_any_block_length_gives_the_same_result(block):
 
 
 @pytest.mark.parametrize("hw,batch,block,counts", [((12, 24), 3, 12, (1, 2, 3)), ((12, 24), 3, 6, (1, 2, 3)),
-                                                   ((4, 8), 3, 24, (1, 2, 3)), ((2, 4), 1, 6, (1, 5, 16))])
+                                                   ((4, 8), 3, 24, (1, 2, 3)), ((4, 8), 1, 24, (1, 2, 3)),
+                                                   ((2, 4), 1, 6, (1, 5, 16))])
 def test_thread_split_equals_one_thread(hw, batch, block, counts):
     """Several threads (positions split across images and mid-image; private gradient copies added in) equal one
-    thread; on a small map (fewer positions than 2 blocks per thread) the forward splits the output channels;
-    with more threads than positions some threads have nothing to do."""
+    thread; on a small map (fewer positions than 2 blocks per thread) the forward and the weight gradient split
+    the output channels; with more threads than positions some threads have nothing to do."""
     torch.manual_seed(5)
     H, W = hw
     cam = Equirectangular(width=2 * W, height=2 * H)

@@ -192,42 +192,61 @@ int64_t omnidl_fc_packed_floats(int k, int n) { return HAVE_KERNEL ? (int64_t)k 
 
 /* The layer's weight (cout, C, K) contiguous, i.e. Wm[t * C + c][co] = wt[(co * C + c) * K + t], packed for the
  * kernel: transpose = 0, Wm (K*C, cout) in 16-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
- * of 16 of its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Reads each weight
- * row once, in order (no strided transpose of the whole weight). No-op on the BLAS path. */
-void omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, float *wp) {
+ * of 16 of its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Weight rows are
+ * re-ordered (c, t) -> (t, c) in a per-thread buffer (16 rows for a forward panel, one row for the transposed
+ * packing), so that every cache line of `wp` is written whole, once; `nthreads` OpenMP threads share the
+ * panels (forward) or rows (transposed). Returns 0, or 1 when a buffer cannot be allocated. No-op on the BLAS
+ * path. */
+int omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, float *wp, int nthreads) {
+    int err = 0;
+    (void)nthreads;  /* unused without OpenMP */
 #if HAVE_KERNEL
     const int64_t KC = (int64_t)K * C;
-    if (!transpose) {
-        const int panels = (cout + NR - 1) / NR;
-        for (int q = 0; q < panels; ++q) {
-            float *d = wp + (int64_t)q * KC * NR;
-            for (int j = 0; j < NR; ++j) {
-                const int co = q * NR + j;
-                if (co >= cout) {
-                    for (int64_t p = 0; p < KC; ++p) d[p * NR + j] = 0.0f;
-                    continue;
+#pragma omp parallel num_threads(nthreads) reduction(| : err)
+    {
+        float *buf = (float *)malloc(sizeof(float) * (size_t)(KC * (transpose ? 1 : NR)));
+        if (!buf) err = 1;
+        if (!transpose) {
+            const int panels = (cout + NR - 1) / NR;
+#pragma omp for schedule(static)
+            for (int q = 0; q < panels; ++q) {
+                if (!buf) continue;
+                float *d = wp + (int64_t)q * KC * NR;
+                const int nr = cout - q * NR < NR ? cout - q * NR : NR;
+                for (int j = 0; j < nr; ++j) {  /* rows of this panel, (t, c) order */
+                    const float *src = wt + (int64_t)(q * NR + j) * KC;
+                    for (int c = 0; c < C; ++c)
+                        for (int t = 0; t < K; ++t) buf[j * KC + (int64_t)t * C + c] = src[(int64_t)c * K + t];
                 }
+                for (int64_t p = 0; p < KC; ++p) {
+                    int j = 0;
+                    for (; j < nr; ++j) d[p * NR + j] = buf[j * KC + p];
+                    for (; j < NR; ++j) d[p * NR + j] = 0.0f;
+                }
+            }
+        } else {
+            const int64_t panels = (KC + NR - 1) / NR;
+#pragma omp for schedule(static)
+            for (int co = 0; co < cout; ++co) {
+                if (!buf) continue;
                 const float *src = wt + co * KC;
                 for (int c = 0; c < C; ++c)
-                    for (int t = 0; t < K; ++t) d[((int64_t)t * C + c) * NR + j] = src[(int64_t)c * K + t];
-            }
-        }
-    } else {
-        const int64_t panels = (KC + NR - 1) / NR;
-        for (int co = 0; co < cout; ++co) {
-            const float *src = wt + co * KC;
-            for (int64_t q = 0; q < panels; ++q) {
-                float *d = wp + q * cout * NR + (int64_t)co * NR;
-                for (int j = 0; j < NR; ++j) {
-                    const int64_t kc = q * NR + j;
-                    d[j] = kc < KC ? src[(kc % C) * K + kc / C] : 0.0f;
+                    for (int t = 0; t < K; ++t) buf[(int64_t)t * C + c] = src[(int64_t)c * K + t];
+                for (int64_t q = 0; q < panels; ++q) {
+                    float *d = wp + q * cout * NR + (int64_t)co * NR;
+                    const int nr = KC - q * NR < NR ? (int)(KC - q * NR) : NR;
+                    int j = 0;
+                    for (; j < nr; ++j) d[j] = buf[q * NR + j];
+                    for (; j < NR; ++j) d[j] = 0.0f;
                 }
             }
         }
+        free(buf);
     }
 #else
-    (void)wt; (void)cout; (void)C; (void)K; (void)transpose; (void)wp;
+    (void)wt; (void)cout; (void)C; (void)K; (void)transpose; (void)wp; (void)nthreads;
 #endif
+    return err;
 }
 
 static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
@@ -304,7 +323,8 @@ int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, 
 /* Backward of B images on `nthreads` OpenMP threads, each over its share of the positions in two passes (each
  * keeps its large operand warm in the cache): gw += A^T gout on re-gathered taps, then gx += S^T (gout Wm^T)
  * scattered straight from the block. Thread 0 accumulates into gw/gx; the others into private copies (of gx:
- * only the band of input rows their positions touch), added in afterwards. gx (B images of gx_img floats) or gw
+ * only the band of input rows their positions touch), added in afterwards. With few positions (as the forward)
+ * the weight gradient is split by output channels instead, straight into gw. gx (B images of gx_img floats) or gw
  * (K*C, cout) may be NULL when that gradient is not needed. The kernel path reads `wtp` (omnidl_fc_pack,
  * transpose = 1), the BLAS path `wm`. Returns 0, 1 when a buffer cannot be allocated, 2 when the operand is
  * missing. */
@@ -314,6 +334,10 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
     const int KC = K * C;
     if (gx && (HAVE_KERNEL ? !wtp : !wm)) return 2;
     const int64_t total = (int64_t)B * P, pixels = gx_img / C;
+    const int panels = (cout + 15) / 16;
+    /* few positions (small deep maps, large weights): each thread runs the weight gradient of every position for
+     * its share of the output channels, so no thread holds a private copy of a large weight gradient */
+    const int gw_by_channels = HAVE_KERNEL && nthreads > 1 && total < 2 * block * nthreads && panels >= nthreads;
     float **pgw = (float **)calloc((size_t)nthreads, sizeof(float *));
     float **pgx = (float **)calloc((size_t)nthreads, sizeof(float *));
     int64_t *lo = (int64_t *)calloc((size_t)nthreads, sizeof(int64_t));
@@ -340,7 +364,9 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
             /* thread 0 writes the results directly, the others private copies (none for an empty share) */
             float *mygw = t == 0 ? gw : NULL, *mygx = t == 0 ? gx : NULL;
             int64_t mylo = 0, myhi = 0;  /* band of flat input rows (b * pixels + pixel) of this thread */
-            if (ok && gw && t > 0 && s1 > s0)
+            if (gw_by_channels)
+                mygw = gw;  /* columns c0..c1 of the result itself */
+            else if (ok && gw && t > 0 && s1 > s0)
                 ok = (mygw = (float *)calloc((size_t)KC * (size_t)cout, sizeof(float))) != NULL;
             if (ok && gx && t > 0 && s1 > s0) {
                 mylo = INT64_MAX;
@@ -363,14 +389,17 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
 #if !HAVE_KERNEL
                 const int prev = single_blas_thread();
 #endif
-                for (int64_t s = s0; mygw && s < s1;) {
+                const int64_t w0 = gw_by_channels ? 0 : s0, w1 = gw_by_channels ? total : s1;
+                const int c0 = gw_by_channels ? 16 * (panels * t / nt) : 0;
+                const int c1 = gw_by_channels ? (int)min64(cout, 16 * (panels * (t + 1) / nt)) : cout;
+                for (int64_t s = w0; mygw && c1 > c0 && s < w1;) {
                     const int64_t b = s / P, p = s % P;
-                    const int m = (int)min64(block, min64(s1 - s, P - p));
+                    const int m = (int)min64(block, min64(w1 - s, P - p));
                     const float *g = gout + b * g_img + p * ldg;
                     gather(x + b * x_img, C, idx, w, p * K, (p + m) * K, A);
-#if HAVE_KERNEL
-                    pack_b(m, cout, g, ldg, 1, gp);
-                    gemm_packed(KC, cout, m, A, 1, KC, gp, mygw, cout, 1);  /* gw (KC, cout) += A^T g */
+#if HAVE_KERNEL  /* gw[:, c0:c1] (KC, cout) += A^T g[:, c0:c1] */
+                    pack_b(m, c1 - c0, g + c0, ldg, 1, gp);
+                    gemm_packed(KC, c1 - c0, m, A, 1, KC, gp, mygw + c0, cout, 1);
 #else
                     blas_gemm('N', 'T', cout, KC, m, 1.0f, g, (int)ldg, A, KC, mygw, cout);
 #endif
@@ -395,7 +424,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
 #endif
             }
             if (t > 0) {
-                pgw[t] = mygw;
+                pgw[t] = gw_by_channels ? NULL : mygw;
                 pgx[t] = mygx;
                 lo[t] = mylo;
                 hi[t] = myhi;
@@ -417,7 +446,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
             free(A);
             free(gp);
             if (t > 0) {
-                free(mygw);
+                if (!gw_by_channels) free(mygw);
                 free(mygx);
             }
         }
