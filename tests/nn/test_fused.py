@@ -67,18 +67,23 @@ def test_fused_equals_columns_and_deform_conv2d(camera, k, s, d, channels_last):
     assert outs[0][1].stride() == outs[1][1].stride()
 
 
-@pytest.mark.parametrize("cin,cout", [(1, 1), (7, 17), (16, 16), (33, 40), (64, 64)])
-@pytest.mark.parametrize("bias", [True, False])
-def test_channel_counts_off_the_kernel_tile(cin, cout, bias):
-    """Output channels not a multiple of the kernel's 16 columns, positions not of its 6 rows, no bias."""
-    torch.manual_seed(cin + cout)
+def _assert_equals_columns(cin: int, cout: int, seed: int, bias: bool = True, batch: int = 2) -> None:
+    """The layer (on whatever kernel build is loaded) against the column path: outputs and all gradients."""
+    torch.manual_seed(seed)
     cam = Equirectangular(width=40, height=20)
     m = ProjectedConv2d(cin, cout, 3, padding=1, camera=cam, bias=bias)
     cols = ProjectedConv2d(cin, cout, 3, padding=1, camera=cam, bias=bias, chunk_positions=11)
     cols.load_state_dict(m.state_dict())
-    x = torch.randn(1, cin, 10, 20)
+    x = torch.randn(batch, cin, 10, 20)
     for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
         _close(a, b, name)
+
+
+@pytest.mark.parametrize("cin,cout", [(1, 1), (7, 17), (16, 16), (33, 40), (64, 64)])
+@pytest.mark.parametrize("bias", [True, False])
+def test_channel_counts_off_the_kernel_tile(cin, cout, bias):
+    """Output channels not a multiple of the kernel's 16 columns, positions not of its 6 rows, no bias."""
+    _assert_equals_columns(cin, cout, seed=cin + cout, bias=bias, batch=1)
 
 
 @pytest.mark.parametrize("need", [("x",), ("w",), ("b",), ("x", "w"), ()])
@@ -276,14 +281,7 @@ def test_the_blas_build_for_cpus_without_avx2(monkeypatch, tmp_path):
     native.reset()
     try:
         assert native.status()["kernel"] == "blas"
-        torch.manual_seed(3)
-        cam = Equirectangular(width=40, height=20)
-        m = ProjectedConv2d(7, 17, 3, padding=1, camera=cam)
-        cols = ProjectedConv2d(7, 17, 3, padding=1, camera=cam, chunk_positions=11)
-        cols.load_state_dict(m.state_dict())
-        x = torch.randn(2, 7, 10, 20)
-        for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
-            _close(a, b, name)
+        _assert_equals_columns(7, 17, seed=3)
     finally:
         native.reset()
 
@@ -299,13 +297,6 @@ def test_a_compiler_without_openmp_builds_the_single_threaded_kernel(monkeypatch
     try:
         st = native.status()
         assert st["available"] and not st["openmp"]
-        torch.manual_seed(4)
-        cam = Equirectangular(width=40, height=20)
-        m = ProjectedConv2d(5, 9, 3, padding=1, camera=cam)
-        cols = ProjectedConv2d(5, 9, 3, padding=1, camera=cam, chunk_positions=11)
-        cols.load_state_dict(m.state_dict())
-        x = torch.randn(2, 5, 10, 20)
-        for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
-            _close(a, b, name)
+        _assert_equals_columns(5, 9, seed=4)
     finally:
         native.reset()

@@ -254,6 +254,29 @@ static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
 /* start of thread t's share of `total` positions (t == nt gives the end); blocks run within each share */
 static int64_t span_edge(int64_t total, int t, int nt) { return t >= nt ? total : total * t / nt; }
 
+/* this thread's number and the team's size (0 and 1 without OpenMP) */
+static void team(int *t, int *nt) {
+#ifdef _OPENMP
+    *t = omp_get_thread_num();
+    *nt = omp_get_num_threads();
+#else
+    *t = 0;
+    *nt = 1;
+#endif
+}
+
+/* few positions for the threads (small deep maps): split the output channels' 16-column panels instead */
+static int split_channels(int64_t total, int64_t block, int nthreads, int cout) {
+    return HAVE_KERNEL && nthreads > 1 && total < 2 * block * nthreads && (cout + 15) / 16 >= nthreads;
+}
+
+/* thread t's output channels [*c0, *c1) when the panels are split among nt threads */
+static void channel_share(int cout, int t, int nt, int *c0, int *c1) {
+    const int panels = (cout + 15) / 16;
+    *c0 = 16 * (panels * t / nt);
+    *c1 = (int)min64(cout, 16 * (panels * (t + 1) / nt));
+}
+
 /* Forward of B images: out rows = bias + gathered taps @ Wm, in blocks of `block` positions, on `nthreads`
  * OpenMP threads (the process's OpenMP runtime: PyTorch's, so this is one more parallel region of its thread
  * team). Each thread takes a share of the B*P positions, or, when there are too few positions for that
@@ -267,21 +290,16 @@ int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, 
     const int KC = K * C;
     if (HAVE_KERNEL ? !wp : !wm) return 2;
     const int64_t total = (int64_t)B * P;
-    const int panels = (cout + 15) / 16;
-    const int by_channels = HAVE_KERNEL && nthreads > 1 && total < 2 * block * nthreads && panels >= nthreads;
+    const int by_channels = split_channels(total, block, nthreads, cout);
     int err = 0;
 #pragma omp parallel num_threads(nthreads) reduction(| : err)
     {
-        int t = 0, nt = 1;
-#ifdef _OPENMP
-        t = omp_get_thread_num();
-        nt = omp_get_num_threads();
-#endif
+        int t, nt;
+        team(&t, &nt);
         int64_t s0 = 0, s1 = total;
         int c0 = 0, c1 = cout;
         if (by_channels) {
-            c0 = 16 * (panels * t / nt);
-            c1 = (int)min64(cout, 16 * (panels * (t + 1) / nt));
+            channel_share(cout, t, nt, &c0, &c1);
         } else {
             s0 = span_edge(total, t, nt);
             s1 = span_edge(total, t + 1, nt);
@@ -334,10 +352,9 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
     const int KC = K * C;
     if (gx && (HAVE_KERNEL ? !wtp : !wm)) return 2;
     const int64_t total = (int64_t)B * P, pixels = gx_img / C;
-    const int panels = (cout + 15) / 16;
     /* few positions (small deep maps, large weights): each thread runs the weight gradient of every position for
      * its share of the output channels, so no thread holds a private copy of a large weight gradient */
-    const int gw_by_channels = HAVE_KERNEL && nthreads > 1 && total < 2 * block * nthreads && panels >= nthreads;
+    const int gw_by_channels = split_channels(total, block, nthreads, cout);
     float **pgw = (float **)calloc((size_t)nthreads, sizeof(float *));
     float **pgx = (float **)calloc((size_t)nthreads, sizeof(float *));
     int64_t *lo = (int64_t *)calloc((size_t)nthreads, sizeof(int64_t));
@@ -346,11 +363,8 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
     if (!err) {
 #pragma omp parallel num_threads(nthreads) reduction(| : err)
         {
-            int t = 0, nt = 1;
-#ifdef _OPENMP
-            t = omp_get_thread_num();
-            nt = omp_get_num_threads();
-#endif
+            int t, nt;
+            team(&t, &nt);
             const int64_t s0 = span_edge(total, t, nt), s1 = span_edge(total, t + 1, nt);
             float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
 #if HAVE_KERNEL
@@ -390,8 +404,8 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
                 const int prev = single_blas_thread();
 #endif
                 const int64_t w0 = gw_by_channels ? 0 : s0, w1 = gw_by_channels ? total : s1;
-                const int c0 = gw_by_channels ? 16 * (panels * t / nt) : 0;
-                const int c1 = gw_by_channels ? (int)min64(cout, 16 * (panels * (t + 1) / nt)) : cout;
+                int c0 = 0, c1 = cout;
+                if (gw_by_channels) channel_share(cout, t, nt, &c0, &c1);
                 for (int64_t s = w0; mygw && c1 > c0 && s < w1;) {
                     const int64_t b = s / P, p = s % P;
                     const int m = (int)min64(block, min64(w1 - s, P - p));
