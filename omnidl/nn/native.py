@@ -74,7 +74,8 @@ def _build(cc: list[str], torch_lib: str) -> Path:
     without); the path of the shared library."""
     version = subprocess.run([*cc, "--version"], capture_output=True, text=True, timeout=60).stdout
     link = [f"-L{torch_lib}", "-ltorch_cpu", f"-Wl,-rpath,{torch_lib}"]
-    folders = (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{os.getuid()}")
+    user = os.getuid() if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")  # no getuid on Windows
+    folders = (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{user}")
     variants = []
     for flags in (FLAGS + OPENMP, FLAGS):
         key = hashlib.sha256("\0".join([SOURCE.read_text(), " ".join(cc), version, " ".join(flags + link),
@@ -141,8 +142,8 @@ def library() -> ctypes.CDLL | None:
             try:
                 path = _build(cc, str(Path(torch.__file__).parent / "lib"))
                 lib = _load(path)
-            except (OSError, RuntimeError, subprocess.SubprocessError) as e:
-                reason = str(e)
+            except Exception as e:  # noqa: BLE001 - any failure to build or load means: run the portable path
+                reason = f"{type(e).__name__}: {e}" if not isinstance(e, RuntimeError) else str(e)
         if lib is None and reason != DISABLED:
             warnings.warn(f"omnidl: the native fixed-offset convolution kernel is unavailable ({reason}); "
                           "ProjectedConv2d runs its slower portable path on CPU", RuntimeWarning, stacklevel=2)

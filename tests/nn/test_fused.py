@@ -300,3 +300,21 @@ def test_a_compiler_without_openmp_builds_the_single_threaded_kernel(monkeypatch
         _assert_equals_columns(5, 9, seed=4)
     finally:
         native.reset()
+
+
+def test_an_unexpected_build_error_still_falls_back(monkeypatch, tmp_path):
+    """Whatever goes wrong while building or loading (here: the cached library is not a shared object), the
+    layer warns and runs the tiled path instead of failing."""
+    def broken(cc, torch_lib):
+        bad = tmp_path / "fixed_conv-broken.so"
+        bad.write_text("not a library")
+        return bad
+    monkeypatch.setattr(native, "_build", broken)
+    native.reset()
+    try:
+        with pytest.warns(RuntimeWarning, match=r"native .* unavailable \(OSError: "):
+            assert native.library() is None
+        m = ProjectedConv2d(2, 3, 3, padding=1, camera=Equirectangular(width=16, height=8))
+        assert type(m(torch.randn(1, 2, 4, 8, requires_grad=True)).grad_fn).__name__.startswith(_TiledConv.__name__)
+    finally:
+        native.reset()
