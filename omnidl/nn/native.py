@@ -76,10 +76,10 @@ def _build(cc: list[str], torch_lib: str) -> Path:
     link = [f"-L{torch_lib}", "-ltorch_cpu", f"-Wl,-rpath,{torch_lib}"]
     user = os.getuid() if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")  # no getuid on Windows
     folders = (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{user}")
+    common = [SOURCE.read_text(), " ".join(cc), version, torch.__version__, _cpu_id(), platform.machine()]
     variants = []
     for flags in (FLAGS + OPENMP, FLAGS):
-        key = hashlib.sha256("\0".join([SOURCE.read_text(), " ".join(cc), version, " ".join(flags + link),
-                                         torch.__version__, _cpu_id(), platform.machine()]).encode()).hexdigest()[:16]
+        key = hashlib.sha256("\0".join(common + [" ".join(flags + link)]).encode()).hexdigest()[:16]
         variants.append((flags, f"fixed_conv-{key}.so"))
         for folder in folders:
             if (folder / variants[-1][1]).is_file():

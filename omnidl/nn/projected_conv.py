@@ -216,10 +216,11 @@ class ProjectedConv2d(nn.Conv2d):
         (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and whenever
         ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`)."""
         plan = get_plan(key, x.device, x.dtype)
-        if self.chunk_positions is None and fused_supported(x, weight, plan):
-            return fused_conv2d(x, weight, bias, plan)
-        if self.chunk_positions is None and tiled_supported(x, weight):
-            return tiled_conv2d(x, weight, bias, plan)
+        if self.chunk_positions is None:
+            if fused_supported(x, weight, plan):
+                return fused_conv2d(x, weight, bias, plan)
+            if tiled_supported(x, weight):
+                return tiled_conv2d(x, weight, bias, plan)
         return fixed_offset_conv2d(x, weight, bias, plan, positions=self.chunk_positions)
 
     def extra_repr(self) -> str:

@@ -188,7 +188,14 @@ int omnidl_fc_openmp(void) {
 }
 
 /* floats of the packed panels of a (k, n) matrix (0 without this file's kernel: the BLAS path packs nothing) */
-int64_t omnidl_fc_packed_floats(int k, int n) { return HAVE_KERNEL ? (int64_t)k * ((n + 15) / 16) * 16 : 0; }
+int64_t omnidl_fc_packed_floats(int k, int n) {
+#if HAVE_KERNEL
+    return packed_floats(k, n);
+#else
+    (void)k; (void)n;
+    return 0;
+#endif
+}
 
 /* The layer's weight (cout, C, K) contiguous, i.e. Wm[t * C + c][co] = wt[(co * C + c) * K + t], packed for the
  * kernel: transpose = 0, Wm (K*C, cout) in 16-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
