@@ -27,6 +27,9 @@ import torch
 import torch.nn as nn
 import torchvision
 from torch import Tensor
+from torchvision.models.resnet import BasicBlock, Bottleneck
+
+from omnidl.nn.inference import conv_bn_act, inference_ready
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +141,10 @@ class ResNetFeatures(nn.Module):
             x = (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
         b = self.body
         feats = []
-        x = b.relu(b.bn1(b.conv1(x)))
+        if inference_ready(x, b.conv1, b.bn1):
+            x = conv_bn_act(x, b.conv1, b.bn1, "relu")
+        else:
+            x = b.relu(b.bn1(b.conv1(x)))
         last = max(self.out_indices)
         if 0 in self.out_indices:
             feats.append(x)
@@ -146,7 +152,32 @@ class ResNetFeatures(nn.Module):
         for i, layer in enumerate((b.layer1, b.layer2, b.layer3, b.layer4), start=1):
             if i > last:
                 break
-            x = layer(x)
+            for block in layer:
+                x = residual_block(block, x)
             if i in self.out_indices:
                 feats.append(x)
         return feats
+
+
+def residual_block(block: nn.Module, x: Tensor) -> Tensor:
+    """``block(x)`` for a torchvision ``Bottleneck``/``BasicBlock``; in inference (:func:`inference_ready`) each
+    Conv-BN(-ReLU) is one call of :func:`omnidl.nn.inference.conv_bn_act`, the last one with the residual sum and
+    the ReLU fused. Other blocks, training and autograd call the block itself."""
+    ds = block.downsample
+    if type(block) is Bottleneck:
+        convs = ((block.conv1, block.bn1), (block.conv2, block.bn2), (block.conv3, block.bn3))
+    elif type(block) is BasicBlock:
+        convs = ((block.conv1, block.bn1), (block.conv2, block.bn2))
+    else:
+        return block(x)
+    if ds is not None and not (type(ds) is nn.Sequential and len(ds) == 2 and isinstance(ds[0], nn.Conv2d)
+                               and isinstance(ds[1], nn.BatchNorm2d)):
+        return block(x)
+    modules = [m for pair in convs for m in pair] + ([] if ds is None else list(ds))
+    if type(block.relu) is not nn.ReLU or not inference_ready(x, *modules):
+        return block(x)
+    identity = x if ds is None else conv_bn_act(x, ds[0], ds[1])
+    out = x
+    for conv, bn in convs[:-1]:
+        out = conv_bn_act(out, conv, bn, "relu")
+    return conv_bn_act(out, *convs[-1], "relu", residual=identity)

@@ -37,6 +37,7 @@ from torch import Tensor
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
 from omnidl.nn.conv_switch import conv_choice
+from omnidl.nn.inference import conv_bn_act, inference_ready
 
 from ._backbone import ResNetFeatures
 from ._memory_format import ChannelsLast, MemoryFormatPolicy, check_policy
@@ -138,14 +139,21 @@ class HoLiNet(MemoryFormatPolicy, nn.Module):
         self.fuse_wrap = True
 
     def _block(self, block: _ConvAct, parts: list[Tensor]) -> Tensor:
-        """``block(torch.cat(parts, 1))``, with the wrap of a circular block fused into the concatenation."""
-        wrap = block[0]
-        if self.fuse_wrap and isinstance(wrap, _HorizontalWrap):
-            x = _cat_wrap(parts, wrap.pad, self.uses_channels_last)
-            for m in list(block)[1:]:
-                x = m(x)
-            return x
-        return block(parts[0] if len(parts) == 1 else torch.cat(parts, 1))
+        """``block(torch.cat(parts, 1))``, with the wrap of a circular block fused into the concatenation and, in
+        inference, the convolution and its ReLU in one call (:func:`omnidl.nn.inference.conv_bn_act`)."""
+        layers = list(block)
+        if isinstance(layers[0], _HorizontalWrap) and self.fuse_wrap:
+            x = _cat_wrap(parts, layers.pop(0).pad, self.uses_channels_last)
+        else:
+            x = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+            if isinstance(layers[0], _HorizontalWrap):
+                x = layers.pop(0)(x)
+        conv = layers[0]
+        if inference_ready(x, conv):
+            return conv_bn_act(x, conv, None, "relu" if len(layers) > 1 else None)
+        for m in layers:
+            x = m(x)
+        return x
 
     def forward(self, image: Tensor) -> dict[str, Tensor]:
         """``image (B, 3, H, W)`` RGB in ``[0, 1]`` -> dict of logits (see the module docstring)."""

@@ -33,7 +33,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from omnidl.nn.inference import conv_bn_act, inference_ready
+from omnidl.nn.padding import CircularConv2d
+
 from ._backbone import ResNetFeatures
+from ._memory_format import ChannelsLast, MemoryFormatPolicy, check_policy
 from .registry import register_model
 
 log = logging.getLogger(__name__)
@@ -45,17 +49,19 @@ BIAS_INIT = (-0.478, 0.425, -1.0)
 
 
 class CompressHeight(nn.Module):
-    """``3x3`` conv, stride ``(2, 1)``, horizontal wrap padding, BN, ReLU: halves the height."""
+    """``3x3`` conv, stride ``(2, 1)``, horizontal wrap padding (:class:`~omnidl.nn.padding.CircularConv2d`; zeros
+    with ``circular=False``), BN, ReLU: halves the height. One :func:`~omnidl.nn.inference.conv_bn_act` call in
+    inference."""
 
     def __init__(self, cin: int, cout: int, circular: bool = True) -> None:
         super().__init__()
         self.circular = circular
-        self.conv = nn.Conv2d(cin, cout, 3, stride=(2, 1), padding=(1, 0) if circular else 1)
+        self.conv = (CircularConv2d if circular else nn.Conv2d)(cin, cout, 3, stride=(2, 1), padding=1)
         self.bn = nn.BatchNorm2d(cout)
 
     def forward(self, x: Tensor) -> Tensor:
-        if self.circular:
-            x = torch.cat([x[..., -1:], x, x[..., :1]], -1)
+        if inference_ready(x, self.conv, self.bn):
+            return conv_bn_act(x, self.conv, self.bn, "relu")
         return F.relu(self.bn(self.conv(x)), inplace=True)
 
 
@@ -78,7 +84,7 @@ def resample_columns(x: Tensor, out_w: int) -> Tensor:
     return y[..., factor:factor + out_w]
 
 
-class HorizonNet(nn.Module):
+class HorizonNet(MemoryFormatPolicy, nn.Module):
     """HorizonNet / non-central HorizonNet (see module docstring).
 
     Args:
@@ -93,11 +99,14 @@ class HorizonNet(nn.Module):
             recorded (``self.camera``): the network is per-column, geometry lives in targets and
             post-processing.
         dropout: dropout of the LSTM/head (0.5).
+        channels_last: memory format of the convolutional part: ``True``, ``False`` or ``"auto"`` (default:
+            channels-last in eval mode, NCHW in training; :mod:`omnidl.models._memory_format`). Results equal up
+            to float rounding.
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, rnn: bool = True, hidden: int = 512,
                  step_cols: int = 4, out_scale: int = 8, circular: bool = True, camera: Any = "equirect",
-                 dropout: float = 0.5) -> None:
+                 dropout: float = 0.5, channels_last: ChannelsLast = "auto") -> None:
         super().__init__()
         self.encoder = ResNetFeatures(backbone, pretrained=pretrained, out_indices=(1, 2, 3, 4))
         if circular:
@@ -122,6 +131,8 @@ class HorizonNet(nn.Module):
             for k, v in enumerate(BIAS_INIT):
                 last.bias[k * self.step_cols:(k + 1) * self.step_cols] = v
         self.camera = camera if not hasattr(camera, "to_config") else camera.to_config()
+        self.channels_last = check_policy(channels_last, "HorizonNet")
+        self.apply_memory_format()
 
     def features(self, x: Tensor) -> Tensor:
         """``(B, 3, H, W) -> (B, feat_dim, W / step_cols)`` column features."""
@@ -131,6 +142,7 @@ class HorizonNet(nn.Module):
             raise ValueError(f"HorizonNet: input {H}x{W} must have H and W divisible by {r} and W by step_cols="
                              f"{self.step_cols}")
         out_w = W // self.step_cols
+        x = self.to_model_format(x)
         cols = []
         for f, tower, h in zip(self.encoder(x), self.reduce_height, TOWER_HEIGHTS):
             y = tower(f)
@@ -153,11 +165,19 @@ class HorizonNet(nn.Module):
 
 
 class CircularMaxPool2d(nn.Module):
-    """ResNet's ``3x3`` stride-2 max-pool with horizontal wrap-around (vertical border: ``-inf``)."""
+    """ResNet's ``3x3`` stride-2 max-pool with horizontal wrap-around (vertical border: ``-inf``).
+
+    Without autograd, on an even width, the map is pooled with ``-inf`` padding on every side and only output
+    column 0, the one whose window holds the wrapped column ``W-1``, is corrected (no padded copy of the map)."""
 
     def forward(self, x: Tensor) -> Tensor:
-        x = torch.cat([x[..., -1:], x, x[..., :1]], -1)
-        return F.max_pool2d(x, 3, 2, padding=(1, 0))
+        if torch.is_grad_enabled() or x.shape[-1] % 2 or x.shape[-1] < 2:
+            x = torch.cat([x[..., -1:], x, x[..., :1]], -1)
+            return F.max_pool2d(x, 3, 2, padding=(1, 0))
+        y = F.max_pool2d(x, 3, 2, padding=1)
+        last = F.max_pool2d(x[..., -1:], (3, 1), (2, 1), padding=(1, 0))        # (B, C, Ho, 1)
+        y[..., :1] = torch.maximum(y[..., :1], last)
+        return y
 
 
 def _wrap_convs(module: nn.Module) -> None:

@@ -26,6 +26,7 @@ from torch import Tensor, nn
 from omnidl.cameras.base import Camera
 from omnidl.cameras.resolve import check_image_size, resolve_camera
 from omnidl.nn.conv_switch import conv_choice
+from omnidl.nn.inference import conv_bn_act, inference_ready
 
 from ._weights import load_weights
 from .registry import register_model
@@ -39,6 +40,12 @@ class DoubleConv(nn.Sequential):
     def __init__(self, cin: int, cout: int) -> None:
         super().__init__(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
                          nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+    def forward(self, x: Tensor) -> Tensor:
+        """In inference each conv-BN-ReLU is one :func:`omnidl.nn.inference.conv_bn_act` call (BatchNorm folded)."""
+        if not inference_ready(x, self[0], self[1], self[3], self[4]):
+            return super().forward(x)
+        return conv_bn_act(conv_bn_act(x, self[0], self[1], "relu"), self[3], self[4], "relu")
 
 
 class Up(nn.Module):

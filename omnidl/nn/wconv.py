@@ -16,6 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from .inference import conv_bn_act, fold_batchnorm, inference_ready
 from .padding import PaddingMode, make_conv2d
 
 Activation = Literal["prelu", "relu", "none"]
@@ -45,6 +46,11 @@ class ConvNormAct(nn.Module):
         self.act = make_activation(activation, out_channels)
 
     def forward(self, x: Tensor) -> Tensor:
+        bn = self.norm if isinstance(self.norm, nn.BatchNorm2d) else None
+        if inference_ready(x, self.conv, bn):   # eval without autograd: folded, kept, one oneDNN call when it can
+            relu = type(self.act) is nn.ReLU
+            y = conv_bn_act(x, self.conv, bn, "relu" if relu else None)
+            return y if relu else self.act(y)
         folded = self._folded_params(x)
         y = self.norm(self.conv(x)) if folded is None else self.conv._conv_forward(x, *folded)
         if type(self.act) is nn.ReLU:
@@ -57,7 +63,8 @@ class ConvNormAct(nn.Module):
 
         ``conv(x, w * s, (b - mean) * s + beta)`` with ``s = gamma / sqrt(var + eps)`` equals
         ``BN(conv(x, w, b))`` with running statistics; it is recomputed from the live parameters on every
-        call (differentiable, never stale) and saves one pass and one buffer of the size of the output.
+        call (differentiable, never stale) and saves one pass and one buffer of the size of the output. (Without
+        autograd, :func:`omnidl.nn.inference.conv_bn_act` keeps the folded weights between calls instead.)
         """
         conv, bn = self.conv, self.norm
         if (self.training or not isinstance(bn, nn.BatchNorm2d) or bn.running_var is None
@@ -66,13 +73,7 @@ class ConvNormAct(nn.Module):
         out_numel = x.numel() // max(1, x.shape[1]) * conv.out_channels // (conv.stride[0] * conv.stride[1])
         if conv.weight.numel() > out_numel:
             return None
-        scale = torch.rsqrt(bn.running_var + bn.eps)
-        if bn.weight is not None:
-            scale = scale * bn.weight
-        bias = -bn.running_mean * scale if conv.bias is None else (conv.bias - bn.running_mean) * scale
-        if bn.bias is not None:
-            bias = bias + bn.bias
-        return conv.weight * scale.reshape(-1, 1, 1, 1), bias
+        return fold_batchnorm(conv.weight, conv.bias, bn)
 
 
 class WConv(nn.Module):
