@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.nn.inference import conv_bn_act, inference_ready
+from omnidl.nn.lstm import lstm_forward
 from omnidl.nn.padding import CircularConv2d
 
 from ._backbone import ResNetFeatures
@@ -155,7 +156,7 @@ class HorizonNet(MemoryFormatPolicy, nn.Module):
         B, _, S = feat.shape
         if self.use_rnn:
             seq = feat.permute(2, 0, 1)                           # (S, B, C)
-            out, _ = self.rnn(seq)
+            out, _ = lstm_forward(self.rnn, seq)                  # native batch-1 recurrence in inference
             out = self.head(self.drop(out))                       # (S, B, 3*step)
             out = out.permute(1, 0, 2)                            # (B, S, 3*step)
         else:

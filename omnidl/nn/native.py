@@ -1,6 +1,7 @@
-"""The native CPU kernel of the fixed-offset convolution (``csrc/fixed_conv.c``): built on first use, cached.
+"""omnidl's native CPU kernels, built on first use and cached: the fixed-offset convolution (``csrc/fixed_conv.c``)
+and the batch-1 LSTM recurrence (``csrc/lstm.c``), one shared library.
 
-The kernel is plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
+The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
 PyTorch has already loaded, so its parallel regions use PyTorch's own intra-op thread team (no second pool
 competing for the cores with spinning threads). On x86-64 with AVX2/FMA its products run on its own
@@ -35,6 +36,8 @@ from pathlib import Path
 import torch
 
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
+#: every source compiled into the library
+SOURCES = (SOURCE, SOURCE.with_name("lstm.c"))
 FLAGS = ["-O3", "-march=native", "-std=c11", "-fPIC", "-shared"]
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
@@ -70,13 +73,13 @@ def _cpu_id() -> str:
 
 
 def _build(cc: list[str], torch_lib: str) -> Path:
-    """Compile :data:`SOURCE` unless a matching cached build exists (with OpenMP where the compiler has it, else
+    """Compile :data:`SOURCES` unless a matching cached build exists (with OpenMP where the compiler has it, else
     without); the path of the shared library."""
     version = subprocess.run([*cc, "--version"], capture_output=True, text=True, timeout=60).stdout
-    link = [f"-L{torch_lib}", "-ltorch_cpu", f"-Wl,-rpath,{torch_lib}"]
+    link = [f"-L{torch_lib}", "-ltorch_cpu", f"-Wl,-rpath,{torch_lib}", "-lm"]
     user = os.getuid() if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")  # no getuid on Windows
     folders = (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{user}")
-    common = [SOURCE.read_text(), " ".join(cc), version, torch.__version__, _cpu_id(), platform.machine()]
+    common = [*(src.read_text() for src in SOURCES), " ".join(cc), version, torch.__version__, _cpu_id(), platform.machine()]
     variants = []
     for flags in (FLAGS + OPENMP, FLAGS):
         key = hashlib.sha256("\0".join(common + [" ".join(flags + link)]).encode()).hexdigest()[:16]
@@ -94,12 +97,12 @@ def _build(cc: list[str], torch_lib: str) -> Path:
             continue  # not writable: try the next folder
         try:
             for flags, name in variants:
-                run = subprocess.run([*cc, *flags, str(SOURCE), "-o", tmp, *link], capture_output=True, text=True,
+                run = subprocess.run([*cc, *flags, *map(str, SOURCES), "-o", tmp, *link], capture_output=True, text=True,
                                      timeout=300)
                 if run.returncode == 0:
                     os.replace(tmp, folder / name)
                     return folder / name
-                error = (f"{' '.join(cc)} failed on {SOURCE.name} (exit {run.returncode}): "
+                error = (f"{' '.join(cc)} failed on {', '.join(src.name for src in SOURCES)} (exit {run.returncode}): "
                          f"{(run.stderr or run.stdout).strip()[-800:]}")
         finally:
             if os.path.exists(tmp):
@@ -119,6 +122,10 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_fc_pack.restype = i
     lib.omnidl_fc_packed_floats.argtypes = [i, i]
     lib.omnidl_fc_packed_floats.restype = n
+    lib.omnidl_lstm_layer.argtypes = [n, i, n, p, p, p, p, p, p, p, i]
+    lib.omnidl_lstm_layer.restype = i
+    lib.omnidl_lstm_padded_width.argtypes = [n]
+    lib.omnidl_lstm_padded_width.restype = n
     for name in ("omnidl_fc_kernel", "omnidl_fc_openmp"):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = i
@@ -145,8 +152,8 @@ def library() -> ctypes.CDLL | None:
             except Exception as e:  # noqa: BLE001 - any failure to build or load means: run the portable path
                 reason = f"{type(e).__name__}: {e}" if not isinstance(e, RuntimeError) else str(e)
         if lib is None and reason != DISABLED:
-            warnings.warn(f"omnidl: the native fixed-offset convolution kernel is unavailable ({reason}); "
-                          "ProjectedConv2d runs its slower portable path on CPU", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"omnidl: the native CPU kernels are unavailable ({reason}); ProjectedConv2d runs its "
+                          "slower portable path on CPU and LSTMs PyTorch's own", RuntimeWarning, stacklevel=2)
         _STATE.update(lib=lib, path=path, reason=reason)
         return lib
 
