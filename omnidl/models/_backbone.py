@@ -162,7 +162,7 @@ class ResNetFeatures(nn.Module):
 def residual_block(block: nn.Module, x: Tensor) -> Tensor:
     """``block(x)`` for a torchvision ``Bottleneck``/``BasicBlock``; in inference (:func:`inference_ready`) each
     Conv-BN(-ReLU) is one call of :func:`omnidl.nn.inference.conv_bn_act`, the last one with the residual sum and
-    the ReLU fused. Other blocks, training and autograd call the block itself."""
+    the ReLU. Other blocks, training and autograd call the block itself."""
     ds = block.downsample
     if type(block) is Bottleneck:
         convs = ((block.conv1, block.bn1), (block.conv2, block.bn2), (block.conv3, block.bn3))

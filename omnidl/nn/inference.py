@@ -1,4 +1,4 @@
-"""Inference-time convolution blocks: ``act(BN(conv(x)) + residual)`` in one oneDNN call with a prepacked weight.
+"""Inference-time convolution blocks: ``act(BN(conv(x)) + residual)`` on oneDNN with a folded, prepacked weight.
 
 ``conv_bn_act(x, conv, bn, act, residual)`` is what a Conv–BatchNorm–(residual sum)–ReLU block computes. In
 eval mode without autograd, on CPU float32 (:func:`inference_ready`):
@@ -8,7 +8,8 @@ eval mode without autograd, on CPU float32 (:func:`inference_ready`):
   and kept until a parameter or a running statistic changes (the key is the storage and ``_version`` of each
   parameter and buffer, and ``num_batches_tracked``, which a training forward bumps; an edit through ``.data``
   bypasses versions: call :func:`clear_cache` after one);
-* the convolution, bias, residual sum and ReLU run as one ``torch.ops.mkldnn._convolution_pointwise`` call.
+* the convolution, bias and ReLU run as one ``torch.ops.mkldnn._convolution_pointwise`` call (with a residual, the sum
+  and the ReLU are one more in-place pass: oneDNN's fused sum ran slower).
 
 ``F.conv2d`` hands oneDNN the weight in PyTorch's layout, and oneDNN re-lays it out on every call; on the
 weight-heavy layers of a ResNet at panorama sizes that costs more than the arithmetic (2 threads: a 75 MB
@@ -41,6 +42,9 @@ Activation = Literal["relu"] | None
 ENABLED = os.environ.get("OMNIDL_PACKED_CONV", "1").strip().lower() not in ("0", "false", "no", "off")
 #: prepacked weights kept per layer (one per input shape it meets; the oldest is dropped beyond this)
 MAX_SHAPES = 4
+
+#: ``relu(y + r)`` written into ``y`` in one pass (an ATen op of the JIT fuser), where this PyTorch has it
+_ADD_RELU = getattr(getattr(torch.ops.aten, "_add_relu_", None), "Tensor", None)
 
 _LOCK = threading.Lock()
 _CACHE: "weakref.WeakKeyDictionary[nn.Module, _Entry]" = weakref.WeakKeyDictionary()
@@ -150,26 +154,29 @@ def _packed_weight(entry: _Entry, conv: nn.Conv2d, padding: tuple[int, int], x: 
 
 def _pointwise(x: Tensor, conv: nn.Conv2d, entry: _Entry, padding: tuple[int, int], act: Activation,
                residual: Tensor | None) -> Tensor:
-    """One oneDNN call: ``act(conv(x; padding) + residual)`` with the entry's folded, prepacked weight (``x`` and the
-    result channels-last)."""
+    """``act(conv(x; padding) + residual)`` with the entry's folded, prepacked weight (``x`` and the result
+    channels-last): one oneDNN call, plus one in-place pass for a residual."""
     w = _packed_weight(entry, conv, padding, x)
     args = (list(padding), list(conv.stride), list(conv.dilation), conv.groups)
     if residual is None:
         return torch.ops.mkldnn._convolution_pointwise(x, w, entry.bias, *args, act or "none", [], "")
-    residual = residual.contiguous(memory_format=torch.channels_last)
-    return torch.ops.mkldnn._convolution_pointwise.binary(x, residual, w, entry.bias, *args, "add", None, act,
-                                                          [], "")
+    # oneDNN's fused sum (the .binary overload) ran 15-25 % slower here than a separate in-place pass
+    y = torch.ops.mkldnn._convolution_pointwise(x, w, entry.bias, *args, "none", [], "")
+    if act is None:
+        return y.add_(residual)
+    return _ADD_RELU(y, residual) if _ADD_RELU is not None else y.add_(residual).relu_()
 
 
 def _wrapped(x: Tensor, conv: CircularConv2d, entry: _Entry, act: Activation, residual: Tensor | None) -> Tensor:
     """:class:`CircularConv2d` through :func:`_pointwise`: zero-padded, then the ``pw`` border columns on each side
     recomputed from the wrapped strip of columns ``W-2pw .. W-1, 0 .. 2pw-1`` (no padded copy of ``x``); a
-    padded copy where that does not apply (stride across the width, a kernel that is not centred, a narrow map)."""
+    padded copy where that does not apply (stride across the width, a kernel that is not centred, a narrow map)
+    or costs less (a map smaller than the weight: the strip's convolution streams the whole weight again)."""
     ph, pw = conv.wrap_padding
     kw, dw = conv.kernel_size[1], conv.dilation[1]
     if not pw:
         return _pointwise(x, conv, entry, (ph, 0), act, residual)
-    if conv.stride[1] != 1 or 2 * pw != dw * (kw - 1) or x.shape[-1] < 4 * pw:
+    if conv.stride[1] != 1 or 2 * pw != dw * (kw - 1) or x.shape[-1] < 4 * pw or x[0].numel() < conv.weight.numel():
         return _pointwise(pad_panorama(x, pw), conv, entry, (ph, 0), act, residual)
     y = _pointwise(x, conv, entry, (ph, pw), act, residual)
     strip = torch.cat([x[..., -2 * pw:], x[..., :2 * pw]], dim=-1)
