@@ -152,17 +152,19 @@ class ResNetFeatures(nn.Module):
         for i, layer in enumerate((b.layer1, b.layer2, b.layer3, b.layer4), start=1):
             if i > last:
                 break
-            for block in layer:
-                x = residual_block(block, x)
+            for j, block in enumerate(layer):
+                # a layer's first block may get a returned feature map: its input is not the blocks' to overwrite
+                x = residual_block(block, x, owns_input=j > 0 or i - 1 not in self.out_indices)
             if i in self.out_indices:
                 feats.append(x)
         return feats
 
 
-def residual_block(block: nn.Module, x: Tensor) -> Tensor:
+def residual_block(block: nn.Module, x: Tensor, owns_input: bool = False) -> Tensor:
     """``block(x)`` for a torchvision ``Bottleneck``/``BasicBlock``; in inference (:func:`inference_ready`) each
     Conv-BN(-ReLU) is one call of :func:`omnidl.nn.inference.conv_bn_act`, the last one with the residual sum and
-    the ReLU. Other blocks, training and autograd call the block itself."""
+    the ReLU, written over the residual when that is the downsampling's output or, with ``owns_input`` (nothing
+    else holds ``x``), ``x`` itself. Other blocks, training and autograd call the block itself."""
     ds = block.downsample
     if type(block) is Bottleneck:
         convs = ((block.conv1, block.bn1), (block.conv2, block.bn2), (block.conv3, block.bn3))
@@ -180,4 +182,4 @@ def residual_block(block: nn.Module, x: Tensor) -> Tensor:
     out = x
     for conv, bn in convs[:-1]:
         out = conv_bn_act(out, conv, bn, "relu")
-    return conv_bn_act(out, *convs[-1], "relu", residual=identity)
+    return conv_bn_act(out, *convs[-1], "relu", residual=identity, into_residual=ds is not None or owns_input)

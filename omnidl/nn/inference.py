@@ -46,6 +46,8 @@ MAX_SHAPES = 4
 #: ``relu(y + r)`` written into ``y`` in one pass (an ATen op of the JIT fuser), where this PyTorch has it
 _ADD_RELU = getattr(getattr(torch.ops.aten, "_add_relu_", None), "Tensor", None)
 
+CL = torch.channels_last
+
 _LOCK = threading.Lock()
 _CACHE: "weakref.WeakKeyDictionary[nn.Module, _Entry]" = weakref.WeakKeyDictionary()
 
@@ -187,10 +189,43 @@ def _wrapped(x: Tensor, conv: CircularConv2d, entry: _Entry, act: Activation, re
     return y
 
 
+#: rows per block of :func:`_dense_into` (a multiple of the kernel's 6 rows)
+DENSE_BLOCK = 96
+
+
+def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, residual: Tensor) -> Tensor | None:
+    """``act(conv(x) + residual)`` for a dense 1x1, stride-1 convolution, written over ``residual`` by the native
+    kernel (``omnidl_dense_forward``: the product straight from the channels-last rows of ``x``, the sum and the
+    ReLU applied per block in the cache); ``None`` where it does not apply (other convolutions, layouts or
+    shapes, the native kernels disabled or unavailable)."""
+    from . import fused, native
+    B, C, H, W = x.shape
+    cout = conv.out_channels
+    if not (fused.ENABLED and conv.kernel_size == (1, 1) and conv.stride == (1, 1) and tuple(conv.padding) == (0, 0)
+            and conv.groups == 1 and type(conv) in (nn.Conv2d, CircularConv2d) and x.is_contiguous(memory_format=CL)
+            and type(residual) is torch.Tensor and residual.shape == (B, cout, H, W) and residual.dtype == x.dtype
+            and residual.is_contiguous(memory_format=CL) and not residual.requires_grad):
+        return None
+    lib = native.library()
+    if lib is None:
+        return None
+    wp = fused._packed(lib, entry.weight, transpose=False, keep=True)
+    wm = entry.weight.reshape(cout, C).t().contiguous() if wp is None else None     # the BLAS build
+    rc = lib.omnidl_dense_forward(x.data_ptr(), C, C, B * H * W, None if wm is None else wm.data_ptr(),
+                                  None if wp is None else wp.data_ptr(), cout,
+                                  None if entry.bias is None else entry.bias.data_ptr(), residual.data_ptr(), cout,
+                                  1, int(act == "relu"), DENSE_BLOCK, torch.get_num_threads())
+    if rc:
+        raise RuntimeError(f"omnidl dense 1x1 convolution: the native kernel returned {rc} (missing operand)")
+    return residual
+
+
 def conv_bn_act(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None = None, act: Activation = None,
-                residual: Tensor | None = None) -> Tensor:
+                residual: Tensor | None = None, into_residual: bool = False) -> Tensor:
     """``act(bn(conv(x)) + residual)``: ``x (B, Cin, H, W)``, ``residual`` ``None`` or ``(B, Cout, Ho, Wo)`` ->
     ``(B, Cout, Ho, Wo)``. ``bn``: a ``BatchNorm2d`` or ``None``; ``act``: ``"relu"`` or ``None``.
+    ``into_residual``: the caller no longer needs ``residual``; a dense 1x1 convolution may then be written over
+    it by the native kernel (:func:`_dense_into`), which saves allocating (and page-faulting) a new output.
 
     Fast path (see the module docstring) where :func:`inference_ready` and ``conv`` is an ``nn.Conv2d`` whose
     ``forward`` is ``nn.Conv2d``'s (so its ``_conv_forward`` is the whole layer); otherwise the modules are called as
@@ -205,6 +240,8 @@ def conv_bn_act(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None = None, act: Ac
             y = y + residual
         return F.relu(y) if act == "relu" else y
     entry = _entry(conv, bn)
+    if into_residual and residual is not None and (y := _dense_into(x, conv, entry, act, residual)) is not None:
+        return y
     if _packable(conv) and x.is_contiguous(memory_format=torch.channels_last):
         if isinstance(conv, CircularConv2d):
             return _wrapped(x, conv, entry, act, residual)

@@ -345,6 +345,68 @@ int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, 
     return err;
 }
 
+/* A dense 1x1 convolution (a product with the input rows as they are, no gather) written over a residual:
+ * out (n, cout) rows (leading dimension ldo) = act(out + bias + x Wm) with x (n, C) rows (leading dimension ldx),
+ * or act(bias + x Wm) without `accumulate`; act = ReLU when `relu`. The sum and the ReLU are applied to each
+ * block while it is in the cache, so the output is read and written once, and no new buffer is needed when
+ * `out` holds a residual that the caller no longer needs. Threads split rows, or output channels for few
+ * rows, as omnidl_fc_forward; `wp` is omnidl_fc_pack's (K = 1, transpose = 0), the BLAS path reads `wm` (C, cout).
+ * Returns 0, or 2 when the operand is missing. */
+int omnidl_dense_forward(const float *x, int64_t ldx, int C, int64_t n, const float *wm, const float *wp, int cout,
+                         const float *bias, float *out, int64_t ldo, int accumulate, int relu, int64_t block,
+                         int nthreads) {
+    if (HAVE_KERNEL ? !wp : !wm) return 2;
+    const int by_channels = split_channels(n, block, nthreads, cout);
+#pragma omp parallel num_threads(nthreads)
+    {
+        int t, nt;
+        team(&t, &nt);
+        int64_t s0 = 0, s1 = n;
+        int c0 = 0, c1 = cout;
+        if (by_channels) {
+            channel_share(cout, t, nt, &c0, &c1);
+        } else {
+            s0 = span_edge(n, t, nt);
+            s1 = span_edge(n, t + 1, nt);
+        }
+#if !HAVE_KERNEL
+        const int prev = single_blas_thread();
+#endif
+        for (int64_t s = s0; s < s1 && c1 > c0;) {
+            const int m = (int)min64(block, s1 - s);
+            float *o = out + s * ldo + c0;
+            int acc = accumulate;
+            if (bias) {
+                for (int i = 0; i < m; ++i) {
+                    float *oi = o + i * ldo;
+                    if (acc)
+                        for (int j = 0; j < c1 - c0; ++j) oi[j] += bias[c0 + j];
+                    else
+                        memcpy(oi, bias + c0, sizeof(float) * (size_t)(c1 - c0));
+                }
+                acc = 1;
+            }
+#if HAVE_KERNEL
+            (void)wm;  /* o (m, c1 - c0) (+)= x rows (m, C) Wm[:, c0:c1] */
+            gemm_packed(m, c1 - c0, C, x + s * ldx, ldx, 1, wp + (int64_t)(c0 / 16) * C * 16, o, ldo, acc);
+#else
+            (void)wp;
+            blas_gemm('N', 'N', c1 - c0, m, C, acc ? 1.0f : 0.0f, wm + c0, cout, x + s * ldx, (int)ldx, o, (int)ldo);
+#endif
+            if (relu)
+                for (int i = 0; i < m; ++i) {
+                    float *oi = o + i * ldo;
+                    for (int j = 0; j < c1 - c0; ++j) oi[j] = oi[j] < 0.0f ? 0.0f : oi[j];  /* NaN stays NaN */
+                }
+            s += m;
+        }
+#if !HAVE_KERNEL
+        restore_blas_threads(prev);
+#endif
+    }
+    return 0;
+}
+
 /* Backward of B images on `nthreads` OpenMP threads, each over its share of the positions in two passes (each
  * keeps its large operand warm in the cache): gw += A^T gout on re-gathered taps, then gx += S^T (gout Wm^T)
  * scattered straight from the block. Thread 0 accumulates into gw/gx; the others into private copies (of gx:
