@@ -40,7 +40,7 @@ Activation = Literal["relu"] | None
 
 #: the prepacked path is used where :func:`inference_ready` allows it (``OMNIDL_PACKED_CONV=0`` turns it off)
 ENABLED = os.environ.get("OMNIDL_PACKED_CONV", "1").strip().lower() not in ("0", "false", "no", "off")
-#: prepacked weights kept per layer (one per input shape it meets; the oldest is dropped beyond this)
+#: prepacked weights kept per layer (one per input shape and thread count it meets; the oldest is dropped beyond this)
 MAX_SHAPES = 4
 
 #: ``relu(y + r)`` written into ``y`` in one pass (an ATen op of the JIT fuser), where this PyTorch has it
@@ -143,7 +143,9 @@ def _entry(conv: nn.Module, bn: nn.Module | None) -> _Entry:
 
 
 def _packed_weight(entry: _Entry, conv: nn.Conv2d, padding: tuple[int, int], x: Tensor) -> Tensor:
-    shape = (tuple(x.shape), padding)
+    # oneDNN picks the blocked weight layout for the thread count too: packed for 2 threads, a 1-thread call
+    # would re-lay the weight out on every call (3x slower HoLiNet-small forward)
+    shape = (tuple(x.shape), padding, torch.get_num_threads())
     packed = entry.packed.get(shape)
     if packed is None:
         packed = torch.ops.mkldnn._reorder_convolution_weight(

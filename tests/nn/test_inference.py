@@ -257,3 +257,22 @@ def test_cache_is_dropped_with_its_layer_and_by_clear_cache():
     del conv
     gc.collect()
     assert len(inf._CACHE) == n - 1
+
+
+def test_weights_are_packed_per_thread_count():
+    """oneDNN chooses the blocked layout for the thread count: a weight packed for 2 threads and used on 1 would
+    be re-laid out on every call, so each thread count gets its own packing (same results)."""
+    conv, bn = nn.Conv2d(8, 12, 3, padding=1).eval(), _bn(12)
+    x = torch.randn(1, 8, 6, 10).contiguous(memory_format=CL)
+    prev = torch.get_num_threads()
+    outs = []
+    try:
+        with torch.no_grad():
+            for n in (2, 1, 2):
+                torch.set_num_threads(n)
+                outs.append(conv_bn_act(x, conv, bn, "relu"))
+    finally:
+        torch.set_num_threads(prev)
+    assert len(inf._CACHE[conv].packed) == 2
+    _close(outs[1], outs[0])
+    torch.testing.assert_close(outs[2], outs[0], rtol=0, atol=0)
