@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .padding import CircularConv2d, pad_panorama
+from .projected_conv import ProjectedConv2d
 
 Activation = Literal["relu"] | None
 
@@ -47,6 +48,7 @@ MAX_SHAPES = 4
 _ADD_RELU = getattr(getattr(torch.ops.aten, "_add_relu_", None), "Tensor", None)
 
 CL = torch.channels_last
+_MKLDNN = torch.backends.mkldnn.is_available()
 
 _LOCK = threading.Lock()
 _CACHE: "weakref.WeakKeyDictionary[nn.Module, _Entry]" = weakref.WeakKeyDictionary()
@@ -76,15 +78,15 @@ def fold_batchnorm(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm2d) -> t
 
 def foldable(bn: nn.Module | None) -> bool:
     """Whether ``bn`` normalises with running statistics now (eval mode), so it can be folded into the conv."""
-    return (isinstance(bn, nn.BatchNorm2d) and not bn.training and bn.running_mean is not None
-            and bn.running_var is not None)
+    return (isinstance(bn, nn.BatchNorm2d) and not bn.training and bn._buffers.get("running_mean") is not None
+            and bn._buffers.get("running_var") is not None)
 
 
 def inference_ready(x: Tensor, *modules: nn.Module | None) -> bool:
     """Whether :func:`conv_bn_act` takes its fast path for input ``x`` and these modules: enabled, CPU float32
     4-d plain tensor, no gradient to record, every BatchNorm foldable, not traced or compiled."""
-    if not (ENABLED and type(x) is torch.Tensor and x.dim() == 4 and x.device.type == "cpu"
-            and x.dtype == torch.float32 and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled):
+    if not (ENABLED and type(x) is torch.Tensor and x.dim() == 4 and not x.is_cuda and x.dtype == torch.float32
+            and x.device.type == "cpu" and _MKLDNN and torch.backends.mkldnn.enabled):
         return False
     if torch.jit.is_tracing() or torch.jit.is_scripting() or torch.compiler.is_compiling():
         return False
@@ -96,8 +98,9 @@ def inference_ready(x: Tensor, *modules: nn.Module | None) -> bool:
             continue
         if isinstance(m, nn.modules.batchnorm._BatchNorm) and not foldable(m):
             return False
-        for p in m.parameters(recurse=False):
-            if (grad and p.requires_grad) or p.dtype != torch.float32 or p.device.type != "cpu":
+        for p in m._parameters.values():
+            if p is not None and ((grad and p.requires_grad) or p.dtype != torch.float32 or p.is_cuda
+                                  or p.device.type != "cpu"):
                 return False
     return True
 
@@ -109,21 +112,20 @@ def _packable(conv: nn.Module) -> bool:
         return False
     if isinstance(conv, CircularConv2d):
         return True
-    return getattr(conv, "camera", None) is None and type(conv)._conv_forward in (
-        nn.Conv2d._conv_forward, _projected_conv_forward())
-
-
-def _projected_conv_forward():
-    from .projected_conv import ProjectedConv2d
-    return ProjectedConv2d._conv_forward
+    if type(conv)._conv_forward is nn.Conv2d._conv_forward:
+        return True
+    return type(conv)._conv_forward is ProjectedConv2d._conv_forward and conv.camera is None
 
 
 def _state_key(conv: nn.Module, bn: nn.Module | None) -> tuple:
-    tensors = [conv.weight, conv.bias]
+    p = conv._parameters                          # (the dicts directly: nn.Module.__getattr__ is slow per call)
+    tensors = [p["weight"], p.get("bias")]
     if bn is not None:
         # a training forward updates the running statistics without bumping their version; it does bump
         # num_batches_tracked's
-        tensors += [bn.weight, bn.bias, bn.running_mean, bn.running_var, bn.num_batches_tracked]
+        q, b = bn._parameters, bn._buffers
+        tensors += [q.get("weight"), q.get("bias"), b.get("running_mean"), b.get("running_var"),
+                    b.get("num_batches_tracked")]
     return tuple((t.data_ptr(), t._version) if t is not None else None for t in tensors) + (
         None if bn is None else bn.eps,)
 
@@ -131,8 +133,7 @@ def _state_key(conv: nn.Module, bn: nn.Module | None) -> tuple:
 def _entry(conv: nn.Module, bn: nn.Module | None) -> _Entry:
     """The folded parameters of ``(conv, bn)``, recomputed when any of their tensors changed."""
     key = _state_key(conv, bn)
-    with _LOCK:
-        hit = _CACHE.get(conv)
+    hit = _CACHE.get(conv)                        # a read needs no lock (the GIL); writes take it
     if hit is None or hit.key != key or hit.bn is not bn:
         with torch.no_grad():
             w, b = (conv.weight, conv.bias) if bn is None else fold_batchnorm(conv.weight, conv.bias, bn)
