@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from . import fused, native
 from .padding import CircularConv2d, pad_panorama
 from .projected_conv import ProjectedConv2d
 
@@ -201,7 +202,6 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
     kernel (``omnidl_dense_forward``: the product straight from the channels-last rows of ``x``, the sum and the
     ReLU applied per block in the cache); ``None`` where it does not apply (other convolutions, layouts or
     shapes, the native kernels disabled or unavailable)."""
-    from . import fused, native
     B, C, H, W = x.shape
     cout = conv.out_channels
     if not (fused.ENABLED and conv.kernel_size == (1, 1) and conv.stride == (1, 1) and tuple(conv.padding) == (0, 0)
