@@ -9,7 +9,10 @@ eval mode without autograd, on CPU float32 (:func:`inference_ready`):
   parameter and buffer, and ``num_batches_tracked``, which a training forward bumps; an edit through ``.data``
   bypasses versions: call :func:`clear_cache` after one);
 * the convolution, bias and ReLU run as one ``torch.ops.mkldnn._convolution_pointwise`` call (with a residual, the sum
-  and the ReLU are one more in-place pass: oneDNN's fused sum ran slower).
+  and the ReLU are one more in-place pass: oneDNN's fused sum ran slower);
+* a dense 1x1 convolution over a residual the caller no longer needs (``into_residual``) runs on omnidl's native
+  kernel instead, written over the residual with the sum and the ReLU applied per block in the cache: no new
+  output buffer (at 1024x512 a ResNet's layer-1 outputs are 33 MB, which glibc maps and page-faults afresh).
 
 ``F.conv2d`` hands oneDNN the weight in PyTorch's layout, and oneDNN re-lays it out on every call; on the
 weight-heavy layers of a ResNet at panorama sizes that costs more than the arithmetic (2 threads: a 75 MB
@@ -20,7 +23,7 @@ The results are the same convolution up to float rounding of the folded weights 
 Layers whose convolution is not a plain one (a ``ProjectedConv2d`` with a camera) get the folded weight, kept
 between calls as well, through their own ``_conv_forward``; a horizontally wrapping
 :class:`~omnidl.nn.padding.CircularConv2d` is convolved zero-padded and its border columns recomputed from a thin
-wrapped strip (no padded copy of the map). Everything else — training, autograd, float64, CUDA, tracing and
+wrapped strip (no padded copy of the map) where the map is larger than the weight. Everything else — training, autograd, float64, CUDA, tracing and
 compiling, ``OMNIDL_PACKED_CONV=0`` — runs the modules' own composition.
 """
 from __future__ import annotations
@@ -56,7 +59,7 @@ _CACHE: "weakref.WeakKeyDictionary[nn.Module, _Entry]" = weakref.WeakKeyDictiona
 
 
 class _Entry:
-    """The folded weight/bias of one (conv, bn) pair and its prepacked weights by input shape."""
+    """The folded weight/bias of one (conv, bn) pair and its prepacked weights by (input shape, padding, threads)."""
 
     def __init__(self, key: tuple, bn: nn.Module | None, weight: Tensor, bias: Tensor | None) -> None:
         self.key, self.bn, self.weight, self.bias = key, bn, weight, bias
@@ -205,9 +208,10 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
     B, C, H, W = x.shape
     cout = conv.out_channels
     if not (fused.ENABLED and conv.kernel_size == (1, 1) and conv.stride == (1, 1) and tuple(conv.padding) == (0, 0)
-            and conv.groups == 1 and type(conv) in (nn.Conv2d, CircularConv2d) and x.is_contiguous(memory_format=CL)
+            and conv.groups == 1 and type(conv) is nn.Conv2d and x.is_contiguous(memory_format=CL)
             and type(residual) is torch.Tensor and residual.shape == (B, cout, H, W) and residual.dtype == x.dtype
-            and residual.is_contiguous(memory_format=CL) and not residual.requires_grad):
+            and residual.is_contiguous(memory_format=CL) and not residual.requires_grad
+            and residual.untyped_storage().data_ptr() != x.untyped_storage().data_ptr()):   # written while x is read
         return None
     lib = native.library()
     if lib is None:

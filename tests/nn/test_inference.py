@@ -276,3 +276,52 @@ def test_weights_are_packed_per_thread_count():
     assert len(inf._CACHE[conv].packed) == 2
     _close(outs[1], outs[0])
     torch.testing.assert_close(outs[2], outs[0], rtol=0, atol=0)
+
+
+DENSE = [  # (name, Cin, Cout, act, batch)
+    ("expansion with ReLU", 8, 24, "relu", 1),
+    ("reduction without activation", 24, 8, None, 1),
+    ("channels off the 16-column panels", 5, 19, "relu", 2),
+    ("few rows: output channels split between threads", 16, 64, "relu", 1),
+]
+
+
+@pytest.mark.parametrize("name,cin,cout,act,batch", DENSE, ids=[d[0] for d in DENSE])
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_dense_1x1_written_over_the_residual(name, cin, cout, act, batch, threads):
+    from omnidl.nn import native
+    if native.library() is None:
+        pytest.skip("native kernels unavailable (no C compiler)")
+    torch.manual_seed(5)
+    conv, bn = nn.Conv2d(cin, cout, 1, bias=False).eval(), _bn(cout)
+    hw = (2, 3) if "few rows" in name else (7, 9)
+    x = torch.randn(batch, cin, *hw).contiguous(memory_format=CL)
+    res = torch.randn(batch, cout, *hw).contiguous(memory_format=CL)
+    ref = _reference(x, conv, bn, act, res)
+    prev = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with torch.no_grad():
+            buf = res.clone()
+            out = conv_bn_act(x, conv, bn, act, buf, into_residual=True)
+    finally:
+        torch.set_num_threads(prev)
+    assert out.data_ptr() == buf.data_ptr()                       # written over the residual, nothing new
+    _close(out, ref)
+
+
+def test_dense_path_keeps_nan_and_is_skipped_where_it_does_not_apply():
+    conv = nn.Conv2d(8, 8, 1).eval()
+    x = torch.randn(1, 8, 4, 6).contiguous(memory_format=CL)
+    x[0, :, 1, 2] = float("nan")
+    with torch.no_grad():
+        out = conv_bn_act(x, conv, None, "relu", torch.zeros(1, 8, 4, 6).contiguous(memory_format=CL),
+                          into_residual=True)
+        assert torch.isnan(out[0, :, 1, 2]).all() and not torch.isnan(out[0, :, 0]).any()   # ReLU keeps NaN
+        same = x.clone().nan_to_num_()
+        res = conv_bn_act(same, conv, None, "relu", same, into_residual=True)  # residual is the input: not in place
+        assert res.data_ptr() != same.data_ptr()
+        _close(res, F.relu(conv(same) + same))
+        nchw = torch.randn(1, 8, 4, 6)
+        res = conv_bn_act(nchw, conv, None, None, torch.zeros(1, 8, 4, 6), into_residual=True)
+        _close(res, conv(nchw))
