@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import threading
+import warnings
 import weakref
 from typing import Literal
 
@@ -240,12 +241,40 @@ def conv_bn_act(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None = None, act: Ac
     if act not in ("relu", None):
         raise ValueError(f"conv_bn_act: act must be 'relu' or None, got {act!r}")
     if not (inference_ready(x, conv, bn) and isinstance(conv, nn.Conv2d) and type(conv).forward is nn.Conv2d.forward):
-        y = conv(x)
-        if bn is not None:
-            y = bn(y)
-        if residual is not None:
-            y = y + residual
-        return F.relu(y) if act == "relu" else y
+        return _composition(x, conv, bn, act, residual)
+    try:
+        return _fast(x, conv, bn, act, residual, into_residual)
+    except RuntimeError as error:  # a build without these oneDNN ops (or a bad input: the modules then raise)
+        y = _composition(x, conv, bn, act, residual)
+        _disable(error)
+        return y
+
+
+def _composition(x: Tensor, conv: nn.Module, bn: nn.Module | None, act: Activation,
+                 residual: Tensor | None) -> Tensor:
+    """The modules as they are: ``act(bn(conv(x)) + residual)``."""
+    y = conv(x)
+    if bn is not None:
+        y = bn(y)
+    if residual is not None:
+        y = y + residual
+    return F.relu(y) if act == "relu" else y
+
+
+def _disable(error: Exception) -> None:
+    """The fast path failed where the modules themselves ran: turn it off for the process, with one warning."""
+    global ENABLED
+    if ENABLED:
+        ENABLED = False
+        warnings.warn(f"omnidl: the packed inference convolutions failed ({type(error).__name__}: "
+                      f"{str(error).splitlines()[0] if str(error) else ''}); the modules run as they are from now on",
+                      RuntimeWarning, stacklevel=3)
+
+
+def _fast(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None, act: Activation, residual: Tensor | None,
+          into_residual: bool) -> Tensor:
+    """:func:`conv_bn_act` where :func:`inference_ready`: the native dense path, oneDNN with the packed weight, or
+    the layer's own ``_conv_forward`` with the folded weight."""
     entry = _entry(conv, bn)
     if into_residual and residual is not None and (y := _dense_into(x, conv, entry, act, residual)) is not None:
         return y

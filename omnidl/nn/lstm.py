@@ -72,7 +72,10 @@ def _input_gates(seq: Tensor, w_ih: Tensor, bias: Tensor | None) -> Tensor:
     """``seq W_ih^T + bias``: ``(S, In) -> (S, D*4H)``, on oneDNN's inner product where PyTorch has it (on 2 threads
     about 1.7x ``torch.addmm`` with a transposed weight at 128 x 1024 x 4096)."""
     if torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled:
-        return torch.ops.mkldnn._linear_pointwise(seq, w_ih, bias, "none", [], "")
+        try:
+            return torch.ops.mkldnn._linear_pointwise(seq, w_ih, bias, "none", [], "")
+        except (RuntimeError, AttributeError):  # a build without this oneDNN op: the plain product below
+            pass
     return torch.addmm(bias, seq, w_ih.t()) if bias is not None else seq @ w_ih.t()
 
 

@@ -325,3 +325,24 @@ def test_dense_path_keeps_nan_and_is_skipped_where_it_does_not_apply():
         nchw = torch.randn(1, 8, 4, 6)
         res = conv_bn_act(nchw, conv, None, None, torch.zeros(1, 8, 4, 6), into_residual=True)
         _close(res, conv(nchw))
+
+
+def test_a_failing_onednn_op_falls_back_for_good_with_one_warning(monkeypatch):
+    """A PyTorch build without these oneDNN ops: the block still gives the modules' result, warns once and the
+    packed path stays off; a genuinely bad input still raises the modules' own error."""
+    def broken(*args, **kwargs):
+        raise RuntimeError("mkldnn::_convolution_pointwise: not available in this build")
+
+    monkeypatch.setattr(inf, "ENABLED", True)
+    monkeypatch.setattr(inf, "_pointwise", broken)
+    conv, bn = nn.Conv2d(8, 12, 3, padding=1).eval(), _bn(12)
+    x = torch.randn(1, 8, 6, 10).contiguous(memory_format=CL)
+    with torch.no_grad():
+        with pytest.warns(RuntimeWarning, match="packed inference convolutions failed .*not available in this build"):
+            out = conv_bn_act(x, conv, bn, "relu")
+        torch.testing.assert_close(out, F.relu(bn(conv(x))), rtol=0, atol=0)
+        assert not inf.ENABLED and not inference_ready(x, conv, bn)
+        monkeypatch.setattr(inf, "ENABLED", True)
+        with pytest.raises(RuntimeError, match="channels"):
+            conv_bn_act(torch.randn(1, 5, 6, 10).contiguous(memory_format=CL), conv, bn, "relu")
+        assert inf.ENABLED
