@@ -272,18 +272,10 @@ def test_the_source_ships_with_the_package():
     assert all(src.is_file() and os.access(src, os.R_OK) for src in native.SOURCES)
 
 
-def test_the_blas_build_for_cpus_without_avx2(monkeypatch, tmp_path):
+def test_the_blas_build_for_cpus_without_avx2(generic_x86_build):
     """Built for plain x86-64 (no AVX2/FMA) the kernel's products call BLAS sgemm_; same results."""
-    if os.uname().machine != "x86_64":
-        pytest.skip("x86-64 only")
-    monkeypatch.setattr(native, "FLAGS", [f if f != "-march=native" else "-march=x86-64" for f in native.FLAGS])
-    monkeypatch.setenv("OMNIDL_CACHE_DIR", str(tmp_path))
-    native.reset()
-    try:
-        assert native.status()["kernel"] == "blas"
-        _assert_equals_columns(7, 17, seed=3)
-    finally:
-        native.reset()
+    assert native.status()["kernel"] == "blas"
+    _assert_equals_columns(7, 17, seed=3)
 
 
 def test_a_compiler_without_openmp_builds_the_single_threaded_kernel(monkeypatch, tmp_path):

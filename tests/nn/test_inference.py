@@ -346,3 +346,19 @@ def test_a_failing_onednn_op_falls_back_for_good_with_one_warning(monkeypatch):
         with pytest.raises(RuntimeError, match="channels"):
             conv_bn_act(torch.randn(1, 5, 6, 10).contiguous(memory_format=CL), conv, bn, "relu")
         assert inf.ENABLED
+
+
+def test_dense_1x1_on_the_build_without_avx2(generic_x86_build):
+    """The BLAS path of the native dense 1x1 convolution (plain x86-64 build): same results."""
+    from omnidl.nn import native
+    assert native.status()["kernel"] == "blas"
+    torch.manual_seed(6)
+    conv, bn = nn.Conv2d(12, 40, 1, bias=False).eval(), _bn(40)
+    x = torch.randn(2, 12, 5, 7).contiguous(memory_format=CL)
+    res = torch.randn(2, 40, 5, 7).contiguous(memory_format=CL)
+    ref = _reference(x, conv, bn, "relu", res)
+    with torch.no_grad():
+        buf = res.clone()
+        out = conv_bn_act(x, conv, bn, "relu", buf, into_residual=True)
+    assert out.data_ptr() == buf.data_ptr()
+    _close(out, ref)

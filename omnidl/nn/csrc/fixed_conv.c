@@ -284,6 +284,20 @@ static void channel_share(int cout, int t, int nt, int *c0, int *c1) {
     *c1 = (int)min64(cout, 16 * (panels * (t + 1) / nt));
 }
 
+/* The calling OpenMP thread's share of a forward: rows [*s0, *s1) of `total` and output channels [*c0, *c1), split
+ * by rows, or by output channels (every row) when `by_channels` */
+static void forward_share(int64_t total, int by_channels, int cout, int64_t *s0, int64_t *s1, int *c0, int *c1) {
+    int t, nt;
+    team(&t, &nt);
+    *s0 = 0, *s1 = total, *c0 = 0, *c1 = cout;
+    if (by_channels) {
+        channel_share(cout, t, nt, c0, c1);
+    } else {
+        *s0 = span_edge(total, t, nt);
+        *s1 = span_edge(total, t + 1, nt);
+    }
+}
+
 /* Forward of B images: out rows = bias + gathered taps @ Wm, in blocks of `block` positions, on `nthreads`
  * OpenMP threads (the process's OpenMP runtime: PyTorch's, so this is one more parallel region of its thread
  * team). Each thread takes a share of the B*P positions, or, when there are too few positions for that
@@ -301,16 +315,9 @@ int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, 
     int err = 0;
 #pragma omp parallel num_threads(nthreads) reduction(| : err)
     {
-        int t, nt;
-        team(&t, &nt);
-        int64_t s0 = 0, s1 = total;
-        int c0 = 0, c1 = cout;
-        if (by_channels) {
-            channel_share(cout, t, nt, &c0, &c1);
-        } else {
-            s0 = span_edge(total, t, nt);
-            s1 = span_edge(total, t + 1, nt);
-        }
+        int64_t s0, s1;
+        int c0, c1;
+        forward_share(total, by_channels, cout, &s0, &s1, &c0, &c1);
         float *A = NULL;
         if (s1 > s0 && c1 > c0 && !(A = (float *)malloc(sizeof(float) * (size_t)(block * KC)))) err = 1;
         if (A) {
@@ -359,16 +366,9 @@ int omnidl_dense_forward(const float *x, int64_t ldx, int C, int64_t n, const fl
     const int by_channels = split_channels(n, block, nthreads, cout);
 #pragma omp parallel num_threads(nthreads)
     {
-        int t, nt;
-        team(&t, &nt);
-        int64_t s0 = 0, s1 = n;
-        int c0 = 0, c1 = cout;
-        if (by_channels) {
-            channel_share(cout, t, nt, &c0, &c1);
-        } else {
-            s0 = span_edge(n, t, nt);
-            s1 = span_edge(n, t + 1, nt);
-        }
+        int64_t s0, s1;
+        int c0, c1;
+        forward_share(n, by_channels, cout, &s0, &s1, &c0, &c1);
 #if !HAVE_KERNEL
         const int prev = single_blas_thread();
 #endif
