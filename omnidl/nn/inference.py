@@ -60,11 +60,29 @@ _CACHE: "weakref.WeakKeyDictionary[nn.Module, _Entry]" = weakref.WeakKeyDictiona
 
 
 class _Entry:
-    """The folded weight/bias of one (conv, bn) pair and its prepacked weights by (input shape, padding, threads)."""
+    """What is kept of one (conv, bn) pair: the folded bias, oneDNN's packed weights by (input shape, padding,
+    threads), the native kernel's packing for the dense path, and the folded weight itself only where a call
+    needs it as such (a layer's own ``_conv_forward``): packed copies alone keep the memory at one extra copy of
+    the weights."""
 
-    def __init__(self, key: tuple, bn: nn.Module | None, weight: Tensor, bias: Tensor | None) -> None:
-        self.key, self.bn, self.weight, self.bias = key, bn, weight, bias
+    def __init__(self, key: tuple, conv: nn.Module, bn: nn.Module | None, bias: Tensor | None) -> None:
+        self.key, self.bn, self.bias = key, bn, bias
+        self.conv = weakref.ref(conv)
+        self.weight: Tensor | None = None
         self.packed: dict[tuple, Tensor] = {}
+        self.dense: tuple[Tensor | None, Tensor | None] | None = None
+
+    def folded_weight(self, keep: bool) -> Tensor:
+        """The folded weight ``(Cout, Cin/groups, kh, kw)``, contiguous; kept with ``keep``."""
+        if self.weight is not None:
+            return self.weight
+        conv = self.conv()
+        with torch.no_grad():
+            w = conv.weight if self.bn is None else fold_batchnorm(conv.weight, conv.bias, self.bn)[0]
+            w = w.detach().contiguous()
+        if keep:
+            self.weight = w
+        return w
 
 
 def fold_batchnorm(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm2d) -> tuple[Tensor, Tensor]:
@@ -72,13 +90,19 @@ def fold_batchnorm(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm2d) -> t
 
     ``conv(x, *fold_batchnorm(w, b, bn))`` equals ``bn(conv(x, w, b))`` in eval mode. ``weight (Cout, ...)``,
     ``bias (Cout,)`` or ``None``; differentiable in every input."""
+    scale, folded = _bn_scale_shift(bias, bn)
+    return weight * scale.reshape(-1, *([1] * (weight.dim() - 1))), folded
+
+
+def _bn_scale_shift(bias: Tensor | None, bn: nn.BatchNorm2d) -> tuple[Tensor, Tensor]:
+    """``(s, (bias - mean) * s + beta)`` of :func:`fold_batchnorm` (the weight's per-channel scale, the bias)."""
     scale = torch.rsqrt(bn.running_var + bn.eps)
     if bn.weight is not None:
         scale = scale * bn.weight
     folded = -bn.running_mean * scale if bias is None else (bias - bn.running_mean) * scale
     if bn.bias is not None:
         folded = folded + bn.bias
-    return weight * scale.reshape(-1, *([1] * (weight.dim() - 1))), folded
+    return scale, folded
 
 
 def foldable(bn: nn.Module | None) -> bool:
@@ -141,8 +165,8 @@ def _entry(conv: nn.Module, bn: nn.Module | None) -> _Entry:
     hit = _CACHE.get(conv)                        # a read needs no lock (the GIL); writes take it
     if hit is None or hit.key != key or hit.bn is not bn:
         with torch.no_grad():
-            w, b = (conv.weight, conv.bias) if bn is None else fold_batchnorm(conv.weight, conv.bias, bn)
-        hit = _Entry(key, bn, w.detach().contiguous(), None if b is None else b.detach())
+            b = conv.bias if bn is None else _bn_scale_shift(conv.bias, bn)[1]
+        hit = _Entry(key, conv, bn, None if b is None else b.detach().contiguous())
         with _LOCK:
             _CACHE[conv] = hit
     return hit
@@ -155,7 +179,8 @@ def _packed_weight(entry: _Entry, conv: nn.Conv2d, padding: tuple[int, int], x: 
     packed = entry.packed.get(shape)
     if packed is None:
         packed = torch.ops.mkldnn._reorder_convolution_weight(
-            entry.weight, list(padding), list(conv.stride), list(conv.dilation), conv.groups, list(x.shape))
+            entry.folded_weight(keep=False), list(padding), list(conv.stride), list(conv.dilation), conv.groups,
+            list(x.shape))
         if len(entry.packed) >= MAX_SHAPES:
             entry.packed.pop(next(iter(entry.packed)))
         entry.packed[shape] = packed
@@ -217,8 +242,11 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
     lib = native.library()
     if lib is None:
         return None
-    wp = fused._packed(lib, entry.weight, transpose=False, keep=True)
-    wm = entry.weight.reshape(cout, C).t().contiguous() if wp is None else None     # the BLAS build
+    if entry.dense is None:
+        w = entry.folded_weight(keep=False)
+        wp = fused._packed(lib, w, transpose=False, keep=False)
+        entry.dense = (wp, w.reshape(cout, C).t().contiguous() if wp is None else None)   # (kernel, BLAS build)
+    wp, wm = entry.dense
     rc = lib.omnidl_dense_forward(x.data_ptr(), C, C, B * H * W, None if wm is None else wm.data_ptr(),
                                   None if wp is None else wp.data_ptr(), cout,
                                   None if entry.bias is None else entry.bias.data_ptr(), residual.data_ptr(), cout,
@@ -282,7 +310,7 @@ def _fast(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None, act: Activation, res
         if isinstance(conv, CircularConv2d):
             return _wrapped(x, conv, entry, act, residual)
         return _pointwise(x, conv, entry, tuple(conv.padding), act, residual)
-    y = conv._conv_forward(x, entry.weight, entry.bias)
+    y = conv._conv_forward(x, entry.folded_weight(keep=True), entry.bias)
     if residual is not None:
         y = y.add_(residual)
     return F.relu_(y) if act == "relu" else y
