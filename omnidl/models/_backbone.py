@@ -142,7 +142,7 @@ class ResNetFeatures(nn.Module):
         b = self.body
         feats = []
         if inference_ready(x, b.conv1, b.bn1):
-            x = conv_bn_act(x, b.conv1, b.bn1, "relu")
+            x = conv_bn_act(x, b.conv1, b.bn1, "relu", ready=True)
         else:
             x = b.relu(b.bn1(b.conv1(x)))
         last = max(self.out_indices)
@@ -178,8 +178,9 @@ def residual_block(block: nn.Module, x: Tensor, owns_input: bool = False) -> Ten
     modules = [m for pair in convs for m in pair] + ([] if ds is None else list(ds))
     if type(block.relu) is not nn.ReLU or not inference_ready(x, *modules):
         return block(x)
-    identity = x if ds is None else conv_bn_act(x, ds[0], ds[1])
+    identity = x if ds is None else conv_bn_act(x, ds[0], ds[1], ready=True)
     out = x
     for conv, bn in convs[:-1]:
-        out = conv_bn_act(out, conv, bn, "relu")
-    return conv_bn_act(out, *convs[-1], "relu", residual=identity, into_residual=ds is not None or owns_input)
+        out = conv_bn_act(out, conv, bn, "relu", ready=True)
+    return conv_bn_act(out, *convs[-1], "relu", residual=identity, into_residual=ds is not None or owns_input,
+                       ready=True)

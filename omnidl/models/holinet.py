@@ -150,7 +150,7 @@ class HoLiNet(MemoryFormatPolicy, nn.Module):
                 x = layers.pop(0)(x)
         conv = layers[0]
         if inference_ready(x, conv):
-            return conv_bn_act(x, conv, None, "relu" if len(layers) > 1 else None)
+            return conv_bn_act(x, conv, None, "relu" if len(layers) > 1 else None, ready=True)
         for m in layers:
             x = m(x)
         return x

@@ -62,7 +62,7 @@ class CompressHeight(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         if inference_ready(x, self.conv, self.bn):
-            return conv_bn_act(x, self.conv, self.bn, "relu")
+            return conv_bn_act(x, self.conv, self.bn, "relu", ready=True)
         return F.relu(self.bn(self.conv(x)), inplace=True)
 
 

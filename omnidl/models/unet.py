@@ -45,7 +45,7 @@ class DoubleConv(nn.Sequential):
         """In inference each conv-BN-ReLU is one :func:`omnidl.nn.inference.conv_bn_act` call (BatchNorm folded)."""
         if not inference_ready(x, self[0], self[1], self[3], self[4]):
             return super().forward(x)
-        return conv_bn_act(conv_bn_act(x, self[0], self[1], "relu"), self[3], self[4], "relu")
+        return conv_bn_act(conv_bn_act(x, self[0], self[1], "relu", ready=True), self[3], self[4], "relu", ready=True)
 
 
 class Up(nn.Module):

@@ -23,8 +23,8 @@ The results are the same convolution up to float rounding of the folded weights 
 Layers whose convolution is not a plain one (a ``ProjectedConv2d`` with a camera) get the folded weight, kept
 between calls as well, through their own ``_conv_forward``; a horizontally wrapping
 :class:`~omnidl.nn.padding.CircularConv2d` is convolved zero-padded and its border columns recomputed from a thin
-wrapped strip (no padded copy of the map) where the map is larger than the weight. Everything else — training, autograd, float64, CUDA, tracing and
-compiling, ``OMNIDL_PACKED_CONV=0`` — runs the modules' own composition.
+wrapped strip (no padded copy of the map) where the map is larger than the weight. Everything else — training,
+autograd, float64, CUDA, tracing and compiling, ``OMNIDL_PACKED_CONV=0`` — runs the modules' own composition.
 """
 from __future__ import annotations
 
@@ -257,18 +257,21 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
 
 
 def conv_bn_act(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None = None, act: Activation = None,
-                residual: Tensor | None = None, into_residual: bool = False) -> Tensor:
+                residual: Tensor | None = None, into_residual: bool = False, ready: bool = False) -> Tensor:
     """``act(bn(conv(x)) + residual)``: ``x (B, Cin, H, W)``, ``residual`` ``None`` or ``(B, Cout, Ho, Wo)`` ->
     ``(B, Cout, Ho, Wo)``. ``bn``: a ``BatchNorm2d`` or ``None``; ``act``: ``"relu"`` or ``None``.
     ``into_residual``: the caller no longer needs ``residual``; a dense 1x1 convolution may then be written over
     it by the native kernel (:func:`_dense_into`), which saves allocating (and page-faulting) a new output.
+    ``ready``: the caller has just found :func:`inference_ready` true for ``x``, ``conv`` and ``bn`` (or for its
+    block's input and modules, when ``x`` is an output of this function), so it is not checked again.
 
     Fast path (see the module docstring) where :func:`inference_ready` and ``conv`` is an ``nn.Conv2d`` whose
     ``forward`` is ``nn.Conv2d``'s (so its ``_conv_forward`` is the whole layer); otherwise the modules are called as
     they are (``conv(x)``, ``bn(.)``, ``+ residual``, ``relu``), so training and autograd are untouched."""
     if act not in ("relu", None):
         raise ValueError(f"conv_bn_act: act must be 'relu' or None, got {act!r}")
-    if not (inference_ready(x, conv, bn) and isinstance(conv, nn.Conv2d) and type(conv).forward is nn.Conv2d.forward):
+    if not ((ready or inference_ready(x, conv, bn)) and isinstance(conv, nn.Conv2d)
+            and type(conv).forward is nn.Conv2d.forward):
         return _composition(x, conv, bn, act, residual)
     try:
         return _fast(x, conv, bn, act, residual, into_residual)

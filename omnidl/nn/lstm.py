@@ -2,8 +2,8 @@
 
 :func:`lstm_forward` ``(lstm, x)`` returns what ``lstm(x)`` returns. Where :func:`lstm_supported` (CPU float32,
 no gradient to record, batch 1, no ``proj_size``, no dropout to apply, the native library built) each layer's input
-part of the gates is one matrix product over the whole sequence (``x W_ih^T + b_ih + b_hh``, both directions at once) and the
-recurrence runs in C, one thread per direction. At batch 1 a step is a matrix-vector product that streams all of
+part of the gates is one matrix product over the whole sequence (``x W_ih^T + b_ih + b_hh``, both directions at
+once) and the recurrence runs in C, one thread per direction. At batch 1 a step is a matrix-vector product that streams all of
 ``W_hh`` (4 MB at hidden 512), so oneDNN's layer, which runs the directions one after the other, is bound by one
 core's cache bandwidth; two independent streams on two cores take about half the time (HorizonNet's 2-layer
 BiLSTM, hidden 512, 128-256 steps: ``benchmarks/public_models.py``). Elsewhere it calls ``lstm(x)``.

@@ -79,7 +79,8 @@ def _build(cc: list[str], torch_lib: str) -> Path:
     link = [f"-L{torch_lib}", "-ltorch_cpu", f"-Wl,-rpath,{torch_lib}", "-lm"]
     user = os.getuid() if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")  # no getuid on Windows
     folders = (cache_dir(), Path(tempfile.gettempdir()) / f"omnidl-native-{user}")
-    common = [*(src.read_text() for src in SOURCES), " ".join(cc), version, torch.__version__, _cpu_id(), platform.machine()]
+    common = [*(src.read_text() for src in SOURCES), " ".join(cc), version, torch.__version__, _cpu_id(),
+              platform.machine()]
     variants = []
     for flags in (FLAGS + OPENMP, FLAGS):
         key = hashlib.sha256("\0".join(common + [" ".join(flags + link)]).encode()).hexdigest()[:16]
@@ -97,8 +98,8 @@ def _build(cc: list[str], torch_lib: str) -> Path:
             continue  # not writable: try the next folder
         try:
             for flags, name in variants:
-                run = subprocess.run([*cc, *flags, *map(str, SOURCES), "-o", tmp, *link], capture_output=True, text=True,
-                                     timeout=300)
+                run = subprocess.run([*cc, *flags, *map(str, SOURCES), "-o", tmp, *link], capture_output=True,
+                                     text=True, timeout=300)
                 if run.returncode == 0:
                     os.replace(tmp, folder / name)
                     return folder / name

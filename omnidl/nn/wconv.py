@@ -49,7 +49,7 @@ class ConvNormAct(nn.Module):
         bn = self.norm if isinstance(self.norm, nn.BatchNorm2d) else None
         if inference_ready(x, self.conv, bn):   # eval without autograd: folded, kept, one oneDNN call when it can
             relu = type(self.act) is nn.ReLU
-            y = conv_bn_act(x, self.conv, bn, "relu" if relu else None)
+            y = conv_bn_act(x, self.conv, bn, "relu" if relu else None, ready=True)
             return y if relu else self.act(y)
         folded = self._folded_params(x)
         y = self.norm(self.conv(x)) if folded is None else self.conv._conv_forward(x, *folded)

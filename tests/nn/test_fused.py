@@ -248,7 +248,8 @@ def test_a_failing_compile_warns_with_the_compiler_message(monkeypatch, tmp_path
     monkeypatch.setenv("OMNIDL_CACHE_DIR", str(tmp_path / "cache"))
     native.reset()
     try:
-        with pytest.warns(RuntimeWarning, match=r"failed on fixed_conv.c, lstm.c \(exit 3\): fatal: cannot compile here"):
+        with pytest.warns(RuntimeWarning,
+                          match=r"failed on fixed_conv.c, lstm.c \(exit 3\): fatal: cannot compile here"):
             assert native.library() is None
         assert not [p for p in (tmp_path / "cache" / "native").iterdir()]  # the temporary file is removed
     finally:
