@@ -39,7 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import fused, native
-from .padding import CircularConv2d, pad_panorama
+from .padding import CircularConv2d, border_strip_conv, pad_panorama
 from .projected_conv import ProjectedConv2d
 
 Activation = Literal["relu"] | None
@@ -213,13 +213,9 @@ def _wrapped(x: Tensor, conv: CircularConv2d, entry: _Entry, act: Activation, re
         return _pointwise(x, conv, entry, (ph, 0), act, residual)
     if conv.stride[1] != 1 or 2 * pw != dw * (kw - 1) or x.shape[-1] < 4 * pw or x[0].numel() < conv.weight.numel():
         return _pointwise(pad_panorama(x, pw), conv, entry, (ph, 0), act, residual)
-    y = _pointwise(x, conv, entry, (ph, pw), act, residual)
-    strip = torch.cat([x[..., -2 * pw:], x[..., :2 * pw]], dim=-1)
     res = None if residual is None else torch.cat([residual[..., -pw:], residual[..., :pw]], dim=-1)
-    s = _pointwise(strip.contiguous(memory_format=torch.channels_last), conv, entry, (ph, 0), act, res)
-    y[..., :pw] = s[..., pw:]                             # strip outputs: right border first, then left
-    y[..., -pw:] = s[..., :pw]
-    return y
+    return border_strip_conv(x, pw, lambda t, p: _pointwise(t.contiguous(memory_format=CL), conv, entry, (ph, p), act,
+                                                            residual if p else res))
 
 
 #: rows per block of :func:`_dense_into` (a multiple of the kernel's 6 rows)

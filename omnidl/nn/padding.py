@@ -130,11 +130,19 @@ def wrapped_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, padding: tupl
     result as padding first; on large maps this saves a full copy (and its page faults) per convolution.
     """
     ph, pw = padding
-    y = F.conv2d(x, weight, bias, 1, (ph, pw), dilation, groups)
-    strip = F.conv2d(torch.cat([x[..., -2 * pw:], x[..., :2 * pw]], dim=-1), weight, bias, 1, (ph, 0),
-                     dilation, groups)                   # (..., 2pw): right border outputs, then left ones
-    y[..., :pw] = strip[..., pw:]
-    y[..., -pw:] = strip[..., :pw]
+    return border_strip_conv(x, pw, lambda t, p: F.conv2d(t, weight, bias, 1, (ph, p), dilation, groups))
+
+
+def border_strip_conv(x: Tensor, pw: int, conv: Callable[[Tensor, int], Tensor]) -> Tensor:
+    """``conv(x, pw)`` (the map convolved with ``pw`` zero columns on each side, no copy) with its ``pw`` border
+    columns on each side replaced by ``conv(strip, 0)`` of the wrapped strip of columns ``W-2pw .. W-1, 0 .. 2pw-1``:
+    a horizontally wrapping convolution whose kernel spans ``2 pw + 1`` columns at width stride 1 (``x`` at least
+    ``4 pw`` columns wide). ``conv(t, p)`` convolves ``t`` with ``p`` zero columns each side; it is called on the strip
+    second (its output: the right border's columns, then the left border's)."""
+    y = conv(x, pw)
+    s = conv(torch.cat([x[..., -2 * pw:], x[..., :2 * pw]], dim=-1), 0)
+    y[..., :pw] = s[..., pw:]
+    y[..., -pw:] = s[..., :pw]
     return y
 
 
