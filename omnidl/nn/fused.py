@@ -31,6 +31,8 @@ from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows,
 BLOCK_BYTES = 224 * 1024
 #: fewest output positions per block (where the image has them)
 MIN_BLOCK = 24
+#: blocks are a multiple of this many positions: the rows of both register kernels' tiles (6 AVX2, 12 AVX-512)
+TILE_ROWS = 12
 #: weights larger than this are read from memory, not cache, on every block (see :func:`block_positions`);
 #: measured here: 3.5 MB (770 -> 128 channels) ran best with small blocks, 14 MB (1536 -> 256) with one block
 BIG_WEIGHT_BYTES = 8 * 2 ** 20
@@ -41,19 +43,20 @@ ENABLED = True
 
 
 def block_positions(plan: SamplingPlan, channels: int, out_channels: int = 0, positions: int = 0) -> int:
-    """Output positions per block: a multiple of the kernel's 6 rows with ``A`` about :data:`BLOCK_BYTES`, and
+    """Output positions per block: a multiple of :data:`TILE_ROWS` with ``A`` about :data:`BLOCK_BYTES`, and
     at least :data:`MIN_BLOCK` (each block streams the whole weight). A weight over :data:`BIG_WEIGHT_BYTES`
     (``out_channels`` given; deep layers, not cache-resident) is streamed from memory on every block, so there
     the block takes all ``positions`` (the batch's), with ``A`` up to :data:`BIG_BLOCK_BYTES`."""
     row = 4 * plan.taps * channels
-    block = max(MIN_BLOCK, BLOCK_BYTES // row // 6 * 6)
+    t = TILE_ROWS
+    block = max(MIN_BLOCK, BLOCK_BYTES // row // t * t)
     if row * out_channels > BIG_WEIGHT_BYTES and positions:
-        block = max(block, min(-(-positions // 6) * 6, max(6, BIG_BLOCK_BYTES // row // 6 * 6)))
+        block = max(block, min(-(-positions // t) * t, max(t, BIG_BLOCK_BYTES // row // t * t)))
     return block
 
 
 # packed weights of inference calls, by weight tensor: (weak reference, version, data pointer, packed)
-_PACKED: dict[tuple[int, bool], tuple[weakref.ref, int, int, Tensor]] = {}
+_PACKED: dict[tuple[int, bool, int], tuple[weakref.ref, int, int, Tensor]] = {}
 
 
 def _blas(lib) -> bool:
@@ -72,7 +75,7 @@ def _packed(lib, weight: Tensor, transpose: bool, keep: bool | None = None) -> T
     KC = kh * kw * C
     if keep is None:
         keep = not (torch.is_grad_enabled() and weight.requires_grad)
-    key = (id(weight), transpose)
+    key = (id(weight), transpose, lib.omnidl_fc_kernel())    # the panels' width depends on the build's kernel
     hit = _PACKED.get(key) if keep else None
     if hit is not None and hit[0]() is weight and hit[1] == weight._version and hit[2] == weight.data_ptr():
         return hit[3]

@@ -70,7 +70,7 @@ class _Entry:
         self.conv = weakref.ref(conv)
         self.weight: Tensor | None = None
         self.packed: dict[tuple, Tensor] = {}
-        self.dense: tuple[Tensor | None, Tensor | None] | None = None
+        self.dense: tuple[int, Tensor | None, Tensor | None] | None = None
 
     def folded_weight(self, keep: bool) -> Tensor:
         """The folded weight ``(Cout, Cin/groups, kh, kw)``, contiguous; kept with ``keep``."""
@@ -218,7 +218,7 @@ def _wrapped(x: Tensor, conv: CircularConv2d, entry: _Entry, act: Activation, re
                                                             residual if p else res))
 
 
-#: rows per block of :func:`_dense_into` (a multiple of the kernel's 6 rows)
+#: rows per block of :func:`_dense_into` (a multiple of :data:`omnidl.nn.fused.TILE_ROWS`)
 DENSE_BLOCK = 96
 
 
@@ -238,11 +238,12 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
     lib = native.library()
     if lib is None:
         return None
-    if entry.dense is None:
+    kind = lib.omnidl_fc_kernel()                         # the packing depends on the build's kernel
+    if entry.dense is None or entry.dense[0] != kind:
         w = entry.folded_weight(keep=False)
         wp = fused._packed(lib, w, transpose=False, keep=False)
-        entry.dense = (wp, w.reshape(cout, C).t().contiguous() if wp is None else None)   # (kernel, BLAS build)
-    wp, wm = entry.dense
+        entry.dense = (kind, wp, w.reshape(cout, C).t().contiguous() if wp is None else None)   # (kernel, BLAS)
+    _, wp, wm = entry.dense
     rc = lib.omnidl_dense_forward(x.data_ptr(), C, C, B * H * W, None if wm is None else wm.data_ptr(),
                                   None if wp is None else wp.data_ptr(), cout,
                                   None if entry.bias is None else entry.bias.data_ptr(), residual.data_ptr(), cout,

@@ -1,12 +1,14 @@
-"""Batch-1 LSTM inference on the native kernel (``csrc/lstm.c``): every direction on its own core.
+"""Batch-1 LSTM inference on the native kernel (``csrc/lstm.c``): each core keeps its share of ``W_hh`` in cache.
 
 :func:`lstm_forward` ``(lstm, x)`` returns what ``lstm(x)`` returns. Where :func:`lstm_supported` (CPU float32,
 no gradient to record, batch 1, no ``proj_size``, no dropout to apply, the native library built) each layer's input
 part of the gates is one matrix product over the whole sequence (``x W_ih^T + b_ih + b_hh``, both directions at
-once) and the recurrence runs in C, one thread per direction. At batch 1 a step is a matrix-vector product that streams all of
-``W_hh`` (4 MB at hidden 512), so oneDNN's layer, which runs the directions one after the other, is bound by one
-core's cache bandwidth; two independent streams on two cores take about half the time (HorizonNet's 2-layer
-BiLSTM, hidden 512, 128-256 steps: ``benchmarks/public_models.py``). Elsewhere it calls ``lstm(x)``.
+once) and the recurrence runs in C. At batch 1 a step is a matrix-vector product that reads all of ``W_hh`` (4 MB
+at hidden 512), so the layer is bound by how fast the cores read it. The kernel splits each direction's hidden
+units across the threads (one barrier per step) and alternates the row order from step to step, so each core
+re-reads its own slice mostly from its L2 cache: about 1.2x oneDNN's layer and 2.3x one thread per direction
+(HorizonNet's 2-layer BiLSTM, hidden 512, 128 steps, 2 threads; ``benchmarks/public_models.py`` times the whole
+network). Elsewhere it calls ``lstm(x)``.
 """
 from __future__ import annotations
 
@@ -56,8 +58,10 @@ def _layer_weights(lstm: nn.LSTM, layer: int) -> tuple[Tensor, Tensor | None, Te
 
 
 def _weights(lstm: nn.LSTM) -> list:
-    """:func:`_layer_weights` of every layer, kept until a parameter changes (storage or ``_version``)."""
-    key = tuple((p.data_ptr(), p._version) for p in lstm._flat_weights)
+    """:func:`_layer_weights` of every layer, kept until a parameter changes (storage or ``_version``) or the
+    library's row width does."""
+    key = (native.library().omnidl_lstm_padded_width(lstm.hidden_size),) + tuple(
+        (p.data_ptr(), p._version) for p in lstm._flat_weights)                       # the row width is the build's
     with _LOCK:
         hit = _CACHE.get(lstm)
     if hit is None or hit[0] != key:

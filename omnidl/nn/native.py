@@ -4,7 +4,7 @@ and the batch-1 LSTM recurrence (``csrc/lstm.c``), one shared library.
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
 PyTorch has already loaded, so its parallel regions use PyTorch's own intra-op thread team (no second pool
-competing for the cores with spinning threads). On x86-64 with AVX2/FMA its products run on its own
+competing for the cores with spinning threads). On x86-64 with AVX-512 (or AVX2/FMA) its products run on its own
 register-blocked kernel; elsewhere they call the BLAS ``sgemm_`` that PyTorch's CPU library exports (MKL in
 the x86 wheels).
 
@@ -161,10 +161,15 @@ def library() -> ctypes.CDLL | None:
         return lib
 
 
+#: what ``omnidl_fc_kernel()`` returns, by name
+KERNELS = ("blas", "avx2", "avx512")
+
+
 def status() -> dict:
-    """``{"available", "kernel" ("avx2" | "blas" | None), "openmp", "path", "reason"}`` of the native kernel."""
+    """``{"available", "kernel" ("avx512" | "avx2" | "blas" | None), "openmp", "path", "reason"}`` of the native
+    kernel."""
     lib = library()
-    kernel = None if lib is None else ("avx2" if lib.omnidl_fc_kernel() else "blas")
+    kernel = None if lib is None else KERNELS[lib.omnidl_fc_kernel()]
     return {"available": lib is not None, "kernel": kernel, "openmp": lib is not None and bool(lib.omnidl_fc_openmp()),
             "path": _STATE.get("path"), "reason": _STATE["reason"]}
 

@@ -82,7 +82,8 @@ def _assert_equals_columns(cin: int, cout: int, seed: int, bias: bool = True, ba
 @pytest.mark.parametrize("cin,cout", [(1, 1), (7, 17), (16, 16), (33, 40), (64, 64)])
 @pytest.mark.parametrize("bias", [True, False])
 def test_channel_counts_off_the_kernel_tile(cin, cout, bias):
-    """Output channels not a multiple of the kernel's 16 columns, positions not of its 6 rows, no bias."""
+    """Output channels not a multiple of the kernel's 16 (AVX2) or 32 (AVX-512) columns, positions not of its 6 or
+    12 rows, no bias."""
     _assert_equals_columns(cin, cout, seed=cin + cout, bias=bias, batch=1)
 
 
@@ -152,14 +153,15 @@ def test_block_positions_are_whole_kernel_tiles_near_the_target():
     plan = get_plan(m.geometry_key((128, 256)), torch.device("cpu"), torch.float32)
     for c in (1, 64, 256, 100_000):
         n = block_positions(plan, c)
-        assert n >= fused_module.MIN_BLOCK and n % 6 == 0
+        assert n >= fused_module.MIN_BLOCK and n % fused_module.TILE_ROWS == 0
         assert n == fused_module.MIN_BLOCK or n * 9 * c * 4 <= fused_module.BLOCK_BYTES
     # a cache-resident weight keeps the small block; a weight streamed from memory takes all positions at once,
     # up to the cap on the gathered block
     assert block_positions(plan, 256, 256, 32768) == block_positions(plan, 256)
     assert block_positions(plan, 2048, 512, 32) == 36
     big = block_positions(plan, 2048, 512, 10 ** 6)
-    assert big % 6 == 0 and big * 9 * 2048 * 4 <= fused_module.BIG_BLOCK_BYTES < (big + 6) * 9 * 2048 * 4
+    t = fused_module.TILE_ROWS
+    assert big % t == 0 and big * 9 * 2048 * 4 <= fused_module.BIG_BLOCK_BYTES < (big + t) * 9 * 2048 * 4
 
 
 def test_layer_dispatch():
@@ -204,7 +206,7 @@ def test_a_nan_pixel_reaches_only_the_outputs_that_sample_it():
 
 def test_status_names_the_kernel_and_the_cached_file():
     st = native.status()
-    assert st["available"] and st["kernel"] in ("avx2", "blas") and st["reason"] == ""
+    assert st["available"] and st["kernel"] in ("avx512", "avx2", "blas") and st["reason"] == ""
     assert st["openmp"]  # gcc here has OpenMP: the kernel runs on PyTorch's thread team
     assert st["path"].is_file() and st["path"].name.startswith("fixed_conv-")
 
@@ -277,6 +279,31 @@ def test_the_blas_build_for_cpus_without_avx2(generic_x86_build):
     """Built for plain x86-64 (no AVX2/FMA) the kernel's products call BLAS sgemm_; same results."""
     assert native.status()["kernel"] == "blas"
     _assert_equals_columns(7, 17, seed=3)
+
+
+@pytest.mark.parametrize("cin,cout", [(7, 17), (33, 40)])
+def test_the_avx2_kernel(avx2_build, cin, cout):
+    """Built for AVX2/FMA without AVX-512 (the 6x16 kernel on 16-column panels): same results."""
+    assert native.status()["kernel"] == "avx2"
+    _assert_equals_columns(cin, cout, seed=5)
+
+
+def test_packings_of_one_build_are_not_used_by_another(avx2_build, monkeypatch):
+    """A weight packed (and kept) for one build's panels is packed again for another build's kernel (AVX2's
+    16-column panels, then this CPU's own build: 32 columns with AVX-512)."""
+    native_flags = [f if not f.startswith("-march=") else "-march=native" for f in native.FLAGS]
+    torch.manual_seed(9)
+    cam = Equirectangular(width=40, height=20)
+    m = ProjectedConv2d(8, 40, 3, padding=1, camera=cam).eval()
+    cols = ProjectedConv2d(8, 40, 3, padding=1, camera=cam, chunk_positions=11).eval()
+    cols.load_state_dict(m.state_dict())
+    x = torch.randn(1, 8, 10, 20)
+    with torch.no_grad():
+        ref = cols(x)
+        _close(m(x), ref, "AVX2 build")
+        monkeypatch.setattr(native, "FLAGS", native_flags)
+        native.reset()
+        _close(m(x), ref, "this CPU's build")
 
 
 def test_a_compiler_without_openmp_builds_the_single_threaded_kernel(monkeypatch, tmp_path):

@@ -348,10 +348,13 @@ def test_a_failing_onednn_op_falls_back_for_good_with_one_warning(monkeypatch):
         assert inf.ENABLED
 
 
-def test_dense_1x1_on_the_build_without_avx2(generic_x86_build):
-    """The BLAS path of the native dense 1x1 convolution (plain x86-64 build): same results."""
+@pytest.mark.parametrize("build", ["generic_x86_build", "avx2_build"])
+def test_dense_1x1_on_other_builds(build, request):
+    """The native dense 1x1 convolution built for plain x86-64 (BLAS) and for AVX2 without AVX-512 (the 6x16
+    kernel): same results."""
     from omnidl.nn import native
-    assert native.status()["kernel"] == "blas"
+    request.getfixturevalue(build)
+    assert native.status()["kernel"] == {"generic_x86_build": "blas", "avx2_build": "avx2"}[build]
     torch.manual_seed(6)
     conv, bn = nn.Conv2d(12, 40, 1, bias=False).eval(), _bn(40)
     x = torch.randn(2, 12, 5, 7).contiguous(memory_format=CL)

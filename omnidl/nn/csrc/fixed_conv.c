@@ -8,8 +8,9 @@
  * Layouts (row-major): x (H*W, C) channels-last input rows of one image; out/gout (P, Cout) rows with leading
  * dimension ldo/ldg; gx (H*W, C) and gw (K*C, Cout) are accumulated into (+=).
  *
- * Products: on x86-64 with AVX2/FMA, this file's 6x16 register-blocked kernel on packed 16-column panels
- * (measured here at the core's FMA peak, as fast as oneDNN's dense convolution); elsewhere the Fortran BLAS
+ * Products: on x86-64 with AVX-512, this file's 12x32 register-blocked kernel on packed 32-column panels; with
+ * AVX2/FMA, a 6x16 one on 16-column panels (each measured near the core's FMA peak, as fast as oneDNN's dense
+ * convolution on the same shapes); elsewhere the Fortran BLAS
  * sgemm_ that libtorch_cpu exports (column-major: a row-major (rows, cols) matrix is a column-major (cols, rows)
  * one, so each of those calls is written transposed).
  */
@@ -27,14 +28,54 @@ extern void sgemm_(const char *ta, const char *tb, const int *m, const int *n, c
  * lower-case symbol is the Fortran one, taking a pointer); weak: absent from other BLAS libraries */
 extern int MKL_Set_Num_Threads_Local(int n) __attribute__((weak));
 
-#if defined(__AVX2__) && defined(__FMA__)
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#define MR 12
+#define NR 32
+#define KC_BLOCK 256
+
+/* c (mr, nr) (+)= a (mr, k) b (k, 32): a[i * rs + p * cs], b[p * 32 + j] (a packed panel, zero beyond nr). 24 zmm
+ * accumulators; rows beyond mr re-read row 0 and are not stored. */
+static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
+                        int accumulate, int mr, int nr) {
+    __m512 acc[MR][2];
+    int64_t off[MR];
+    for (int i = 0; i < MR; ++i) {
+        acc[i][0] = acc[i][1] = _mm512_setzero_ps();
+        off[i] = i < mr ? i * rs : 0;
+    }
+    for (int p = 0; p < k; ++p) {
+        const __m512 b0 = _mm512_loadu_ps(b + NR * p), b1 = _mm512_loadu_ps(b + NR * p + 16);
+        const float *ap = a + p * cs;
+#pragma GCC unroll 12
+        for (int i = 0; i < MR; ++i) {
+            const __m512 t = _mm512_set1_ps(ap[off[i]]);
+            acc[i][0] = _mm512_fmadd_ps(t, b0, acc[i][0]);
+            acc[i][1] = _mm512_fmadd_ps(t, b1, acc[i][1]);
+        }
+    }
+    const __mmask16 m0 = nr >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << nr) - 1u);
+    const __mmask16 m1 = nr >= 32 ? (__mmask16)0xFFFF : nr <= 16 ? (__mmask16)0 : (__mmask16)((1u << (nr - 16)) - 1u);
+    for (int i = 0; i < mr; ++i) {
+        float *ci = c + i * ldc;
+        __m512 r0 = acc[i][0], r1 = acc[i][1];
+        if (accumulate) {
+            r0 = _mm512_add_ps(r0, _mm512_maskz_loadu_ps(m0, ci));
+            r1 = _mm512_add_ps(r1, _mm512_maskz_loadu_ps(m1, ci + 16));
+        }
+        _mm512_mask_storeu_ps(ci, m0, r0);
+        _mm512_mask_storeu_ps(ci + 16, m1, r1);
+    }
+}
+#define HAVE_TILE 1
+#elif defined(__AVX2__) && defined(__FMA__)
 #include <immintrin.h>
 #define MR 6
 #define NR 16
 #define KC_BLOCK 256
 
 /* c (mr, nr) (+)= a (mr, k) b (k, 16): a[i * rs + p * cs], b[p * 16 + j] (a packed panel, zero beyond nr). */
-static void kernel_6x16(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
+static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
                         int accumulate, int mr, int nr) {
     __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00;
     __m256 c30 = c00, c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00;
@@ -78,10 +119,14 @@ static void kernel_6x16(int k, const float *a, int64_t rs, int64_t cs, const flo
     }
 }
 
-/* c (m, n) (+)= a (m, k) b (k, n): a[i * rs + p * cs]; b packed in ceil(n / 16) panels of (k, 16), panel q
- * holding columns 16q.. (zero-padded); c row-major with leading dimension ldc.
+#define HAVE_TILE 1
+#endif
+
+#ifdef HAVE_TILE
+/* c (m, n) (+)= a (m, k) b (k, n): a[i * rs + p * cs]; b packed in ceil(n / NR) panels of (k, NR), panel q
+ * holding columns NR*q.. (zero-padded); c row-major with leading dimension ldc.
  * Per chunk of KC_BLOCK k-values: when the chunk of b is small enough to stay in L2 (B_RESIDENT bytes), each
- * 6-row sliver of a is loaded once and run against every panel (rows outer); otherwise each panel's chunk stays
+ * MR-row sliver of a is loaded once and run against every panel (rows outer); otherwise each panel's chunk stays
  * in L1 while every sliver of a runs against it (panels outer). */
 #define B_RESIDENT (192 * 1024)
 static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t cs, const float *bp, float *c,
@@ -95,7 +140,7 @@ static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t
             for (int inner = 0; inner < (rows_outer ? panels : m); inner += (rows_outer ? 1 : MR)) {
                 const int i = rows_outer ? outer : inner, q = rows_outer ? inner : outer;
                 const int nr = n - q * NR < NR ? n - q * NR : NR;
-                kernel_6x16(kb, a + i * rs + p0 * cs, rs, cs, bp + (int64_t)q * k * NR + (int64_t)p0 * NR,
+                kernel_tile(kb, a + i * rs + p0 * cs, rs, cs, bp + (int64_t)q * k * NR + (int64_t)p0 * NR,
                             c + i * ldc + q * NR, ldc, acc, m - i < MR ? m - i : MR, nr);
             }
         }
@@ -120,8 +165,10 @@ static void pack_b(int k, int n, const float *b, int64_t rs, int64_t cs, float *
     }
 }
 #define HAVE_KERNEL 1
+#define PANEL NR
 #else
 #define HAVE_KERNEL 0
+#define PANEL 16
 #endif
 
 #if !HAVE_KERNEL
@@ -175,8 +222,14 @@ static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_
     }
 }
 
-/* 1 when the products run on this file's AVX2/FMA kernel, 0 when they call BLAS sgemm */
-int omnidl_fc_kernel(void) { return HAVE_KERNEL; }
+/* which products run: 2 on this file's AVX-512 kernel, 1 on its AVX2/FMA kernel, 0 BLAS sgemm */
+int omnidl_fc_kernel(void) {
+#if defined(__AVX512F__)
+    return 2;
+#else
+    return HAVE_KERNEL;
+#endif
+}
 
 /* 1 when built with OpenMP (the calls run on several threads), else 0 */
 int omnidl_fc_openmp(void) {
@@ -198,9 +251,9 @@ int64_t omnidl_fc_packed_floats(int k, int n) {
 }
 
 /* The layer's weight (cout, C, K) contiguous, i.e. Wm[t * C + c][co] = wt[(co * C + c) * K + t], packed for the
- * kernel: transpose = 0, Wm (K*C, cout) in 16-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
- * of 16 of its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Weight rows are
- * re-ordered (c, t) -> (t, c) in a per-thread buffer (16 rows for a forward panel, one row for the transposed
+ * kernel: transpose = 0, Wm (K*C, cout) in NR-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
+ * of NR of its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Weight rows are
+ * re-ordered (c, t) -> (t, c) in a per-thread buffer (NR rows for a forward panel, one row for the transposed
  * packing), so that every cache line of `wp` is written whole, once; `nthreads` OpenMP threads share the
  * panels (forward) or rows (transposed). Returns 0, or 1 when a buffer cannot be allocated. No-op on the BLAS
  * path. */
@@ -272,16 +325,16 @@ static void team(int *t, int *nt) {
 #endif
 }
 
-/* few positions for the threads (small deep maps): split the output channels' 16-column panels instead */
+/* few positions for the threads (small deep maps): split the output channels' panels instead */
 static int split_channels(int64_t total, int64_t block, int nthreads, int cout) {
-    return HAVE_KERNEL && nthreads > 1 && total < 2 * block * nthreads && (cout + 15) / 16 >= nthreads;
+    return HAVE_KERNEL && nthreads > 1 && total < 2 * block * nthreads && (cout + PANEL - 1) / PANEL >= nthreads;
 }
 
 /* thread t's output channels [*c0, *c1) when the panels are split among nt threads */
 static void channel_share(int cout, int t, int nt, int *c0, int *c1) {
-    const int panels = (cout + 15) / 16;
-    *c0 = 16 * (panels * t / nt);
-    *c1 = (int)min64(cout, 16 * (panels * (t + 1) / nt));
+    const int panels = (cout + PANEL - 1) / PANEL;
+    *c0 = PANEL * (panels * t / nt);
+    *c1 = (int)min64(cout, PANEL * (panels * (t + 1) / nt));
 }
 
 /* The calling OpenMP thread's share of a forward: rows [*s0, *s1) of `total` and output channels [*c0, *c1), split
@@ -336,7 +389,7 @@ int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, 
                 }
 #if HAVE_KERNEL
                 (void)wm;  /* o (m, c1 - c0) (+)= A (m, KC) Wm[:, c0:c1] */
-                gemm_packed(m, c1 - c0, KC, A, KC, 1, wp + (int64_t)(c0 / 16) * KC * 16, o, ldo, acc);
+                gemm_packed(m, c1 - c0, KC, A, KC, 1, wp + (int64_t)(c0 / NR) * KC * NR, o, ldo, acc);
 #else
                 (void)wp;
                 blas_gemm('N', 'N', cout, m, KC, acc ? 1.0f : 0.0f, wm, cout, A, KC, o, (int)ldo);
@@ -388,7 +441,7 @@ int omnidl_dense_forward(const float *x, int64_t ldx, int C, int64_t n, const fl
             }
 #if HAVE_KERNEL
             (void)wm;  /* o (m, c1 - c0) (+)= x rows (m, C) Wm[:, c0:c1] */
-            gemm_packed(m, c1 - c0, C, x + s * ldx, ldx, 1, wp + (int64_t)(c0 / 16) * C * 16, o, ldo, acc);
+            gemm_packed(m, c1 - c0, C, x + s * ldx, ldx, 1, wp + (int64_t)(c0 / NR) * C * NR, o, ldo, acc);
 #else
             (void)wp;
             blas_gemm('N', 'N', c1 - c0, m, C, acc ? 1.0f : 0.0f, wm + c0, cout, x + s * ldx, (int)ldx, o, (int)ldo);
