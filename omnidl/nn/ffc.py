@@ -46,6 +46,7 @@ import torch.nn as nn
 from torch import Tensor
 
 from .padding import PaddingMode, make_conv2d
+from .unfold_conv import module_conv2d
 from .wconv import Activation, make_activation
 
 FFTNorm = Literal["backward", "ortho", "forward"]
@@ -187,10 +188,10 @@ class FFC(nn.Module):
 
     def forward(self, x: Tensor | tuple[Tensor | None, Tensor | None]) -> tuple[Tensor | None, Tensor | None]:
         x_l, x_g = self.split(x)
-        y_l = _add(self.conv_l2l(x_l) if self.conv_l2l is not None else None,
-                   self.conv_g2l(x_g) if self.conv_g2l is not None else None)
-        y_g = _add(self.conv_l2g(x_l) if self.conv_l2g is not None else None,
-                   self.conv_g2g(x_g) if self.conv_g2g is not None else None)
+        y_l = _add(module_conv2d(self.conv_l2l, x_l) if self.conv_l2l is not None else None,
+                   module_conv2d(self.conv_g2l, x_g) if self.conv_g2l is not None else None)
+        y_g = _add(module_conv2d(self.conv_l2g, x_l) if self.conv_l2g is not None else None,
+                   module_conv2d(self.conv_g2g, x_g) if self.conv_g2g is not None else None)
         return y_l, y_g
 
 

@@ -21,6 +21,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from .unfold_conv import conv2d
+
 PaddingMode = Literal["zeros", "circular"]
 VerticalMode = Literal["zeros", "replicate", "reflect"]
 
@@ -108,7 +110,7 @@ class CircularConv2d(nn.Conv2d):
             return wrapped_conv2d(x, weight, bias, (ph, pw), self.dilation, self.groups)
         if pw:
             x = pad_panorama(x, pw)
-        return F.conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups)
+        return conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", wrap_padding={self.wrap_padding} (horizontal wrap)"

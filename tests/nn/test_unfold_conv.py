@@ -1,0 +1,140 @@
+"""omnidl.nn.unfold_conv: weight-heavy convolutions as one product over the unfolded input.
+
+Outputs and all gradients against ``F.conv2d`` (1e-5 of their scale in float32, 1e-12 in float64, gradcheck
+in float64); the rule's verdict on a table of shapes; the callers (FFC, CircularConv2d) and the cases that must
+call ``F.conv2d`` itself."""
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+import omnidl.nn.unfold_conv as U
+from omnidl.nn.ffc import FFC
+from omnidl.nn.padding import CircularConv2d
+from omnidl.nn.unfold_conv import conv2d, module_conv2d, unfold_conv2d, weight_heavy
+
+CL = torch.channels_last
+
+
+def _close(a, b, tol):
+    scale = b.abs().max().clamp_min(1e-30)
+    torch.testing.assert_close(a / scale, b / scale, rtol=0, atol=tol)
+
+
+# (name, input shape, weight shape, stride, padding, dilation, bias, channels-last)
+CASES = [
+    ("3x3 same, bias", (1, 6, 4, 5), (80, 6, 3, 3), 1, 1, 1, True, False),
+    ("no bias", (1, 6, 4, 5), (80, 6, 3, 3), 1, 1, 1, False, False),
+    ("batch 2", (2, 5, 3, 4), (96, 5, 3, 3), 1, 1, 1, True, False),
+    ("batch 2, no bias", (2, 5, 3, 4), (96, 5, 3, 3), 1, 1, 1, False, False),
+    ("stride (2, 1), padding (1, 0)", (1, 4, 6, 7), (60, 4, 3, 3), (2, 1), (1, 0), 1, True, False),
+    ("dilation 2, rectangular kernel", (1, 3, 6, 7), (168, 3, 3, 2), 1, (2, 1), 2, True, False),
+    ("1x1", (1, 7, 2, 3), (25, 7, 1, 1), 1, 0, 1, True, False),
+    ("channels-last input and weight", (1, 6, 4, 5), (80, 6, 3, 3), 1, 1, 1, True, True),
+    ("channels-last, batch 2", (2, 6, 3, 4), (96, 6, 3, 3), 1, 1, 1, True, True),
+]
+
+
+def _operands(shape, wshape, bias, cl, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(shape, generator=g, dtype=dtype)
+    w = torch.randn(wshape, generator=g, dtype=dtype)
+    b = torch.randn(wshape[0], generator=g, dtype=dtype) if bias else None
+    if cl:
+        x, w = x.contiguous(memory_format=CL), w.contiguous(memory_format=CL)
+    return [t.requires_grad_() if t is not None else None for t in (x, w, b)]
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)], ids=["f32", "f64"])
+@pytest.mark.parametrize("name,shape,wshape,stride,padding,dilation,bias,cl", CASES, ids=[c[0] for c in CASES])
+def test_equals_conv2d_with_gradients(name, shape, wshape, stride, padding, dilation, bias, cl, dtype, tol):
+    x, w, b = _operands(shape, wshape, bias, cl, dtype)
+    assert weight_heavy(x, w, stride, padding, dilation)
+    y = unfold_conv2d(x, w, b, stride, padding, dilation)
+    ref = F.conv2d(x, w, b, stride, padding, dilation)
+    assert y.shape == ref.shape
+    assert y.is_contiguous(memory_format=CL if cl else torch.contiguous_format)
+    _close(y, ref, tol)
+    g = torch.randn_like(ref)
+    params = [t for t in (x, w, b) if t is not None]
+    for a, r, what in zip(torch.autograd.grad(y, params, g), torch.autograd.grad(ref, params, g), ("x", "w", "b")):
+        _close(a, r, tol)
+
+
+def test_gradcheck_and_second_derivatives():
+    x, w, b = _operands((1, 3, 3, 4), (20, 3, 3, 3), True, False, torch.float64, seed=1)
+    fn = lambda x, w, b: unfold_conv2d(x, w, b, 1, 1, 1)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (x, w, b))
+    assert torch.autograd.gradgradcheck(fn, (x, w, b))
+
+
+# (name, input shape, weight shape, stride, padding, groups, dtype, device, verdict)
+RULE = [
+    ("FreDSNet Fourier block: 1024 ch on 4x8", (1, 1024, 4, 8), (1024, 1024, 3, 3), 1, 1, 1, "f32", "cpu", True),
+    ("out channels = 4x positions", (1, 8, 8, 16), (512, 8, 3, 3), 1, 1, 1, "f32", "cpu", True),
+    ("out channels just below 4x positions", (1, 8, 8, 16), (511, 8, 3, 3), 1, 1, 1, "f32", "cpu", False),
+    ("batch counts: 2 images of 8x16", (2, 8, 8, 16), (512, 8, 3, 3), 1, 1, 1, "f32", "cpu", False),
+    ("stride counts: 8x16 -> 4x8", (1, 8, 8, 16), (128, 8, 3, 3), 2, 1, 1, "f32", "cpu", True),
+    ("256 ch on 16x32 (not a small map)", (1, 256, 16, 32), (256, 256, 3, 3), 1, 1, 1, "f32", "cpu", False),
+    ("float64", (1, 8, 2, 2), (64, 8, 3, 3), 1, 1, 1, "f64", "cpu", True),
+    ("grouped", (1, 8, 2, 2), (64, 4, 3, 3), 1, 1, 2, "f32", "cpu", False),
+    ("padding given as a string", (1, 8, 2, 2), (64, 8, 3, 3), 1, "same", 1, "f32", "cpu", False),
+    ("float16", (1, 8, 2, 2), (64, 8, 3, 3), 1, 1, 1, "f16", "cpu", False),
+    ("CUDA (cuDNN's own)", (1, 8, 2, 2), (64, 8, 3, 3), 1, 1, 1, "f32", "meta", False),
+    ("no output positions", (1, 8, 1, 1), (64, 8, 3, 3), 1, 0, 1, "f32", "cpu", False),
+]
+DTYPES = {"f32": torch.float32, "f64": torch.float64, "f16": torch.float16}
+
+
+@pytest.mark.parametrize("name,shape,wshape,stride,padding,groups,dtype,device,verdict", RULE,
+                         ids=[r[0] for r in RULE])
+def test_the_rule(name, shape, wshape, stride, padding, groups, dtype, device, verdict):
+    x = torch.empty(shape, dtype=DTYPES[dtype], device=device)
+    w = torch.empty(wshape, dtype=DTYPES[dtype], device=device)
+    assert weight_heavy(x, w, stride, padding, 1, groups) is verdict
+
+
+def test_disabled_and_light_calls_are_f_conv2d_exactly(monkeypatch):
+    x, w, b = _operands((1, 6, 4, 5), (80, 6, 3, 3), True, False, torch.float32)
+    ref = F.conv2d(x, w, b, 1, 1)
+    monkeypatch.setattr(U, "ENABLED", False)
+    assert not weight_heavy(x, w, 1, 1)
+    torch.testing.assert_close(conv2d(x, w, b, 1, 1), ref, rtol=0, atol=0)
+    monkeypatch.setattr(U, "ENABLED", True)
+    light = torch.randn(4, 6, 3, 3)
+    torch.testing.assert_close(conv2d(x, light, None, 1, 1), F.conv2d(x, light, None, 1, 1), rtol=0, atol=0)
+
+
+def test_module_conv2d_keeps_hooks_and_other_classes():
+    torch.manual_seed(0)
+    x = torch.randn(1, 6, 4, 5)
+    conv = nn.Conv2d(6, 80, 3, padding=1)
+    assert weight_heavy(x, conv.weight, 1, 1)
+    _close(module_conv2d(conv, x), conv(x), 1e-5)
+    seen = []
+    conv.register_forward_hook(lambda m, i, o: seen.append(o.shape))
+    module_conv2d(conv, x)
+    assert seen == [torch.Size([1, 80, 4, 5])]                         # hooked: called as a module
+    reflect = nn.Conv2d(6, 80, 3, padding=1, padding_mode="reflect")
+    torch.testing.assert_close(module_conv2d(reflect, x), reflect(x), rtol=0, atol=0)
+
+
+def test_circular_conv_and_ffc_take_it_with_the_same_results(monkeypatch):
+    torch.manual_seed(1)
+    circ = CircularConv2d(6, 64, 3, padding=1)
+    x = torch.randn(1, 6, 2, 8, requires_grad=True)
+    y = circ(x)
+    monkeypatch.setattr(U, "ENABLED", False)
+    ref = circ(x)
+    _close(y, ref, 1e-5)
+    _close(torch.autograd.grad(y.sum(), x)[0], torch.autograd.grad(ref.sum(), x)[0], 1e-5)
+    monkeypatch.setattr(U, "ENABLED", True)
+    ffc = FFC(64, 64, 3, spectral=False)
+    xf = torch.randn(1, 64, 2, 4)
+    assert weight_heavy(xf[:, :32], ffc.conv_l2l.weight, 1, 1)
+    out = ffc(xf)
+    monkeypatch.setattr(U, "ENABLED", False)
+    for a, b in zip(out, ffc(xf)):
+        _close(a, b, 1e-5)
