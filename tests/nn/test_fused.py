@@ -338,3 +338,26 @@ def test_an_unexpected_build_error_still_falls_back(monkeypatch, tmp_path):
         assert type(m(torch.randn(1, 2, 4, 8, requires_grad=True)).grad_fn).__name__.startswith(_TiledConv.__name__)
     finally:
         native.reset()
+
+
+# (name, sysfs cache entries as (level, type, size), expected L2 bytes)
+L2_CASES = [
+    ("a 2 MB unified L2", [("1", "Data", "48K"), ("1", "Instruction", "64K"), ("2", "Unified", "2048K"),
+                           ("3", "Unified", "491520K")], 2 * 2 ** 20),
+    ("in megabytes", [("2", "Unified", "1M")], 2 ** 20),
+    ("no level-2 entry", [("1", "Data", "32K"), ("3", "Unified", "8192K")], None),
+    ("an instruction-only L2 is not counted", [("2", "Instruction", "512K")], None),
+    ("unreadable size", [("2", "Unified", "")], None),
+]
+
+
+@pytest.mark.parametrize("name,entries,expected", L2_CASES, ids=[c[0] for c in L2_CASES])
+def test_l2_cache_size_from_sysfs(name, entries, expected, tmp_path):
+    for i, (level, kind, size) in enumerate(entries):
+        d = tmp_path / f"index{i}"
+        d.mkdir()
+        (d / "level").write_text(level + "\n")
+        (d / "type").write_text(kind + "\n")
+        (d / "size").write_text(size + "\n")
+    assert fused_module.l2_cache_bytes(str(tmp_path)) == expected
+    assert fused_module.l2_cache_bytes(str(tmp_path / "missing")) is None
