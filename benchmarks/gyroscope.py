@@ -7,9 +7,10 @@
 256x128, horizon RANSAC, MPP yaw n = 3 with 4 starts, PVG n = 5) with the ResNet-50 + EquiConv thesis model
 and the small CPU model, random weights; the network runs but the tilt comes from ground-truth heat maps (an
 untrained net gives no valid horizon), so MPP/PVG start where a trained net would put them. The stages are
-also timed alone (also as in a frame: with the reference's parts prepared once). ``Gyroscope.track`` (the network
-of the next frame in a worker thread while this one's horizon fit, MPP and PVG run, one intra-op thread each;
-same results as ``estimate`` on one thread) is timed on a few frames: its fps is the throughput of a stream.
+also timed alone (also as in a frame: with the reference's parts prepared once). ``Gyroscope.track`` (default
+``pipeline="auto"``: after the first frame, the network of the next frame in a worker thread while this one's
+horizon fit, MPP and PVG run, one intra-op thread each, where that pays, else ``estimate`` frame by frame) is timed
+on a few frames: its fps is the throughput of a stream.
 The named baseline, interleaved in the same run, is a reference-style MPP
 (``benchmarks/mpp_reference.py``: one start, all N x N Gaussian sums re-computed every Gauss-Newton
 iteration) on a pure-yaw pair, against omnidl's MPP with one start on the same pair. Targets (issue 17,
@@ -149,8 +150,8 @@ def speed(args) -> dict:
         res[k + " fps"] = fps
         kt = f"{TRACK_FRAMES} frames {k[len('frame '):]}, track()"
         fps_t = TRACK_FRAMES / med[kt]
-        print(target_line(f"{tag} fps, pipelined (Gyroscope.track: network of frame k+1 || horizon fit + MPP + "
-                          "PVG of frame k, 1 thread each)",
+        print(target_line(f"{tag} fps, stream (Gyroscope.track, pipeline='auto': network of frame k+1 || horizon "
+                          "fit + MPP + PVG of frame k, 1 thread each, where that pays)",
                           f"{fps_t:.2f} fps ({med[kt] * 1e3 / TRACK_FRAMES:.0f} ms/frame)",
                           ratio(times, kt, base) / TRACK_FRAMES, "the baseline MPP's time", f">= {tgt:g} fps",
                           fps_t >= tgt, loaded))

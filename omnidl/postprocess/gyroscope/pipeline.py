@@ -15,6 +15,7 @@ black/flat, has the wrong size or makes a solver return non-finite values gets a
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
@@ -83,6 +84,15 @@ def _resize(images: Tensor, height: int) -> Tensor:
     return F.interpolate(images, size=(height, 2 * height), mode="bilinear", align_corners=False, antialias=True)
 
 
+def pipelining_pays(network_s: float, rest_s: float, threads_now: int, threads: int) -> bool:
+    """Whether :meth:`Gyroscope.track`'s pipeline beats running frames one after the other, from one frame's
+    ``network_s`` and ``rest_s`` (seconds, timed on ``threads_now`` intra-op threads): pipelined, each side gets
+    ``threads`` threads, so the network is assumed ``threads_now / threads`` times slower and a frame costs
+    ``max(network, rest)``; unpipelined it costs ``network + rest``."""
+    slower = max(1, int(threads_now)) / max(1, int(threads))
+    return max(network_s * slower, rest_s) < network_s + rest_s
+
+
 class Gyroscope:
     """Estimate ``R_ref_cur`` of frames w.r.t. one reference panorama.
 
@@ -148,22 +158,48 @@ class Gyroscope:
         """
         return self._photometric(*self._tilt(images))
 
-    def track(self, frames: Iterable[Tensor], threads: int = 1) -> Iterator[dict[str, Tensor]]:
-        """:meth:`estimate` of each of ``frames`` (``(B, 3, H, W)`` each, in order), pipelined: the horizon
-        network of frame ``k + 1`` (``horizon_fn``, in one worker thread) runs while this thread does the
-        rest of frame ``k`` (horizon fit, MPP, PVG). Each result is :meth:`estimate`'s for that frame run
-        with ``threads`` intra-op threads; on a machine with ``2 threads`` free CPUs the throughput is then
-        one frame per ``max(network, rest)`` instead of their sum (the latency of a frame is unchanged).
+    def track(self, frames: Iterable[Tensor], threads: int = 1, pipeline: bool | str = "auto"
+              ) -> Iterator[dict[str, Tensor]]:
+        """:meth:`estimate` of each of ``frames`` (``(B, 3, H, W)`` each, in order), pipelined where that is faster.
 
-        The process runs with ``threads`` intra-op threads (torch's setting is global) until the generator is
-        exhausted or closed; an exception of a frame is raised when its result is reached.
+        Pipelined, the horizon network of frame ``k + 1`` (``horizon_fn``, in one worker thread) runs while this
+        thread does the rest of frame ``k`` (horizon fit, MPP, PVG), each with ``threads`` intra-op threads; on a
+        machine with ``2 threads`` free CPUs the throughput is then one frame per ``max(network, rest)``
+        instead of their sum (the latency of a frame is unchanged), and each result is :meth:`estimate`'s for
+        that frame run with ``threads`` intra-op threads. Unpipelined, each frame is :meth:`estimate` on the
+        process's threads.
+
+        Args:
+            threads: intra-op threads of each side of the pipeline.
+            pipeline: ``True``, ``False``, or ``"auto"``: the first frame runs unpipelined and is timed, and
+                the later ones are pipelined when :func:`pipelining_pays` for its network and rest times (a
+                network that needs all the cores, such as HoLiNet-ResNet-50-Equi, runs faster unpipelined).
+
+        While pipelined the process runs with ``threads`` intra-op threads (torch's setting is global) until the
+        generator is exhausted or closed; an exception of a frame is raised when its result is reached.
         """
         from concurrent.futures import ThreadPoolExecutor
+        if pipeline not in (True, False, "auto"):
+            raise ValueError(f"gyroscope: track(pipeline=...) must be True, False or 'auto', got {pipeline!r}")
         if self.reference is None:
             raise RuntimeError("gyroscope: call set_reference(image) before track()")
         it = iter(frames)
         first = next(it, None)
         if first is None:
+            return
+        if pipeline == "auto":
+            t0 = time.perf_counter()
+            tilt = self._tilt(first)
+            t1 = time.perf_counter()
+            yield self._photometric(*tilt)
+            pipeline = pipelining_pays(t1 - t0, time.perf_counter() - t1, torch.get_num_threads(), threads)
+            first = next(it, None)
+            if first is None:
+                return
+        if not pipeline:
+            yield self.estimate(first)
+            for frame in it:
+                yield self.estimate(frame)
             return
         before = torch.get_num_threads()
         torch.set_num_threads(int(threads))
