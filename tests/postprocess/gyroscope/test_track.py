@@ -29,6 +29,14 @@ def _gyro():
     return g, [f[None] for f in procedural_panorama(R, 64, 128, seed=1)]
 
 
+def _assert_equal(got, expect):
+    assert len(got) == len(expect)
+    for a, b in zip(got, expect):
+        assert a.keys() == b.keys()
+        for k in a:
+            assert torch.equal(a[k], b[k]), k
+
+
 def test_track_equals_estimate_frame_by_frame():
     g, frames = _gyro()
     before = torch.get_num_threads()
@@ -36,36 +44,27 @@ def test_track_equals_estimate_frame_by_frame():
         expect = [g.estimate(f) for f in frames]
     got = list(g.track(iter(frames), pipeline=True))
     assert torch.get_num_threads() == before
-    assert len(got) == len(frames)
-    for a, b in zip(got, expect):
-        assert a.keys() == b.keys()
-        for k in a:
-            assert torch.equal(a[k], b[k]), k
+    _assert_equal(got, expect)
 
 
-def test_track_edge_cases():
+@pytest.mark.parametrize("pipeline", [True, False, "auto"])
+def test_track_edge_cases(pipeline):
     g, frames = _gyro()
     before = torch.get_num_threads()
-    assert list(g.track([])) == []
-    gen = g.track(frames)
+    assert list(g.track([], pipeline=pipeline)) == []
+    gen = g.track(frames, pipeline=pipeline)
+    next(gen)
     next(gen)
     gen.close()  # stopping early restores the thread setting
     assert torch.get_num_threads() == before
     with pytest.raises(ValueError):  # a bad frame raises when its result is reached, the earlier ones come out
         out = []
-        for r in g.track([frames[0], torch.rand(1, 2, 64, 128)]):
+        for r in g.track([frames[0], torch.rand(1, 2, 64, 128)], pipeline=pipeline):
             out.append(r)
     assert len(out) == 1 and torch.get_num_threads() == before
     with pytest.raises(RuntimeError, match="set_reference"):
         next(Gyroscope(None, OPTS).track(frames))
 
-
-def _assert_equal(got, expect):
-    assert len(got) == len(expect)
-    for a, b in zip(got, expect):
-        assert a.keys() == b.keys()
-        for k in a:
-            assert torch.equal(a[k], b[k]), k
 
 
 def test_unpipelined_track_is_estimate():
