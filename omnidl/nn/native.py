@@ -9,7 +9,7 @@ register-blocked kernel; elsewhere they call the BLAS ``sgemm_`` that PyTorch's 
 the x86 wheels).
 
 Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native -fopenmp`` (without ``-fopenmp`` where
-the compiler lacks it: then single-threaded), linked against ``libtorch_cpu``. The shared library is cached
+the compiler lacks it: then single-threaded; plus ``-mprefer-vector-width=512`` on AVX-512 CPUs), linked against ``libtorch_cpu``. The shared library is cached
 under ``$OMNIDL_CACHE_DIR/native`` (default ``$XDG_CACHE_HOME/omnidl/native``, else ``~/.cache/omnidl/native``),
 named by a hash of the source, compiler, flags, torch build and CPU, and written atomically (compiled to a
 temporary name, then renamed), so concurrent processes never load a half-written file. ``OMNIDL_NATIVE=0``
@@ -38,7 +38,20 @@ import torch
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 #: every source compiled into the library
 SOURCES = (SOURCE, SOURCE.with_name("lstm.c"))
-FLAGS = ["-O3", "-march=native", "-std=c11", "-fPIC", "-shared"]
+def _wide_vectors() -> list[str]:
+    """On x86-64 CPUs with AVX-512, ask the compiler to auto-vectorize with 512-bit vectors (GCC and Clang prefer
+    256 bits there): the gather of the taps, bias, ReLU and scatter loops. Measured: the 64-channel
+    ``ProjectedConv2d`` forward 1.24-1.33x ``nn.Conv2d`` against 1.42x without (same kernel, 2 threads)."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return []
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return []
+    return ["-mprefer-vector-width=512"] if " avx512f" in flags else []
+
+
+FLAGS = ["-O3", "-march=native", *_wide_vectors(), "-std=c11", "-fPIC", "-shared"]
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 

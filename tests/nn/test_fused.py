@@ -361,3 +361,17 @@ def test_l2_cache_size_from_sysfs(name, entries, expected, tmp_path):
         (d / "size").write_text(size + "\n")
     assert fused_module.l2_cache_bytes(str(tmp_path)) == expected
     assert fused_module.l2_cache_bytes(str(tmp_path / "missing")) is None
+
+
+@pytest.mark.parametrize("machine,cpuinfo,expected", [
+    ("x86_64", "flags\t: fpu sse2 avx2 fma avx512f avx512bw\n", ["-mprefer-vector-width=512"]),
+    ("x86_64", "flags\t: fpu sse2 avx2 fma\n", []),
+    ("aarch64", "Features\t: fp asimd sve\n", []),
+], ids=["AVX-512", "AVX2 only", "ARM"])
+def test_wide_vectors_only_on_avx512_x86(machine, cpuinfo, expected, monkeypatch):
+    """The 512-bit auto-vectorization flag is passed only where the compiler and CPU have it."""
+    real_read = native.Path.read_text
+    monkeypatch.setattr(native.platform, "machine", lambda: machine)
+    monkeypatch.setattr(native.Path, "read_text",
+                        lambda self, *a, **k: cpuinfo if str(self) == "/proc/cpuinfo" else real_read(self, *a, **k))
+    assert native._wide_vectors() == expected
