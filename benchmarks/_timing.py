@@ -44,6 +44,25 @@ def load_line(threads: int, what: str = "") -> str:
     return f"# load average (1 min) {la:.2f}{' ' + what if what else ''}, own threads {threads}{flag}"
 
 
+def host_line() -> str:
+    """``# host: CPU model, CPUs, L2 per core, omnidl's native kernel``: figures differ between hosts (an AVX-512
+    host runs oneDNN's convolutions about twice as fast as an AVX2 one), so each run names its own."""
+    from omnidl.nn import fused, native
+    model = "unknown CPU"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    l2 = fused.l2_cache_bytes()
+    st = native.status()
+    kernel = st["kernel"] or "unavailable: " + st["reason"]
+    return (f"# host: {model}, {os.cpu_count()} CPUs, L2 {l2 // 1024 if l2 else '?'} kB per core, omnidl native "
+            f"kernel {kernel}")
+
+
 def is_loaded(threads: int) -> bool:
     return load1() > threads
 

@@ -33,7 +33,7 @@ import torchvision
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._timing import load_line  # noqa: E402
+from benchmarks._timing import host_line, load_line  # noqa: E402
 from omnidl.cameras import Equirectangular  # noqa: E402
 from omnidl.models.fredsnet import FreDSNet, count_parameters  # noqa: E402
 
@@ -89,6 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
     if a.scaling:
         return scaling(a)
     print(f"torch {torch.__version__}, {a.threads} threads, load average {os.getloadavg()}", flush=True)
+    print(host_line(), flush=True)
     print(load_line(a.threads, "at start"), flush=True)
 
     cam = Equirectangular(width=512, height=256)

@@ -54,7 +54,7 @@ from omnidl.postprocess.gyroscope.scene import procedural_panorama  # noqa: E402
 
 def speed(args) -> dict:
     """Per-frame cost of the gyroscope at 256x128, every job interleaved with the baseline (see module doc)."""
-    from benchmarks._timing import interleaved, is_loaded, load_line, ratio, target_line
+    from benchmarks._timing import host_line, interleaved, is_loaded, load_line, ratio, target_line
     from benchmarks.mpp_reference import reference_mpp_yaw
     from omnidl.models import create_model
     from omnidl.nn.threads import limit_threads
@@ -120,6 +120,7 @@ def speed(args) -> dict:
         jobs[f"forward {tag}"] = fwd
     print(f"# gyroscope speed, 256x128, batch 1, {args.threads} threads (photometric stages threads='auto'), median of "
           f"{args.reps} interleaved reps")
+    print(host_line())
     print(load_line(args.threads, "at start"))
     loaded = is_loaded(args.threads)
     times = interleaved(jobs, args.reps, warmup=2)

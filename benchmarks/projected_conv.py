@@ -35,11 +35,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._timing import interleaved, is_loaded, load_line, ratio, target_line  # noqa: E402
+from benchmarks._timing import host_line, interleaved, is_loaded, load_line, ratio, target_line  # noqa: E402
 from omnidl.cameras import Equirectangular  # noqa: E402
 from omnidl.nn import ProjectedConv2d, clear_plan_cache, plan_cache_info  # noqa: E402
 from omnidl.nn.projected_conv import get_plan  # noqa: E402
-from omnidl.nn import fused, native  # noqa: E402
+from omnidl.nn import fused  # noqa: E402
 from omnidl.nn.sampling import circular_offsets, deform_conv2d_circular  # noqa: E402
 
 TARGETS = {64: (1.3, 1.5), 256: (1.1, 1.2)}  # channels -> (fwd, fwd+bwd) max ratio to conv2d
@@ -275,8 +275,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(a.threads)
     print(f"# ProjectedConv2d benchmark, float32, CPU, {a.threads} threads, median of {a.reps} interleaved reps")
     print(load_line(a.threads, "at start"))
-    st = native.status()
-    print(f"native kernel: {st['kernel'] or 'unavailable: ' + st['reason']}")
+    print(host_line())
     for cfg in a.configs:
         C, H, W = (int(v) for v in cfg.lower().split("x"))
         run_config(C, H, W, a.batch, a.reps, a.threads, a.deform_reps, a.skip_deform)

@@ -43,7 +43,7 @@ import torchvision
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._timing import is_loaded, load1, load_line  # noqa: E402
+from benchmarks._timing import host_line, is_loaded, load1, load_line  # noqa: E402
 
 TARGETS = {"horizonnet": 0.7, "fredsnet": 0.6}
 FILES = {"horizonnet": "model.py", "fredsnet": "FreDSNet_model.py"}
@@ -200,6 +200,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     sizes = a.sizes or (["512x1024", "256x512"] if a.which == "horizonnet" else ["128x256"])
     hw = [tuple(int(v) for v in s.lower().split("x")) for s in sizes]
     print(f"torch {torch.__version__}, {a.threads} threads, {a.reps} reps", flush=True)
+    print(host_line(), flush=True)
     print(load_line(a.threads, "at start"), flush=True)
     mod = import_public(a.which, ref_dir)
     bench = bench_horizonnet if a.which == "horizonnet" else bench_fredsnet

@@ -19,7 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._timing import interleaved, is_loaded, load_line, median_times, ratio, target_line  # noqa: E402
+from benchmarks._timing import (host_line, interleaved, is_loaded, load_line, median_times, ratio,  # noqa: E402
+                               target_line)
 from omnidl.cameras import build  # noqa: E402
 from omnidl.synth import place_camera, render, sample_room  # noqa: E402
 from omnidl.synth import raycast  # noqa: E402
@@ -59,6 +60,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} threads, median of {args.reps}")
+    print(host_line(), flush=True)
     print(load_line(args.threads, "at start"), flush=True)
     targets = {(1024, 512): 0.15, (256, 128): 0.025}  # issue 17, item 5 (issue 4: 0.5 s / 50 ms)
     for cam_type in args.cameras:
