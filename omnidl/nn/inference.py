@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import fused, native
+from . import fused, native, winograd
 from .padding import CircularConv2d, border_strip_conv, pad_panorama
 from .projected_conv import ProjectedConv2d
 
@@ -71,6 +71,7 @@ class _Entry:
         self.weight: Tensor | None = None
         self.packed: dict[tuple, Tensor] = {}
         self.dense: tuple[int, Tensor | None, Tensor | None] | None = None
+        self.wino: tuple[int, Tensor | None] | None = None
 
     def folded_weight(self, keep: bool) -> Tensor:
         """The folded weight ``(Cout, Cin/groups, kh, kw)``, contiguous; kept with ``keep``."""
@@ -253,6 +254,31 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
     return residual
 
 
+def _winograd(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, residual: Tensor | None) -> Tensor | None:
+    """``act(conv(x) [+ residual])`` for a stride-1 3x3 layer by Winograd F(2x2, 3x3) on the native kernel
+    (:mod:`omnidl.nn.winograd`), written over ``residual`` when given (the caller no longer needs it); ``None``
+    where it does not apply."""
+    wrap = winograd.wrap_mode(x, conv)
+    if wrap is None or (residual is not None and not (
+            type(residual) is torch.Tensor and residual.shape == (x.shape[0], conv.out_channels) + x.shape[2:]
+            and residual.dtype == x.dtype and residual.is_contiguous(memory_format=CL)
+            and not residual.requires_grad
+            and residual.untyped_storage().data_ptr() != x.untyped_storage().data_ptr())):
+        return None
+    lib = native.library()
+    if lib is None:
+        return None
+    kind = lib.omnidl_fc_kernel()                         # the packing depends on the build's kernel
+    if entry.wino is None or entry.wino[0] != kind:
+        entry.wino = (kind, winograd.pack(lib, entry.folded_weight(keep=False)))
+    if entry.wino[1] is None:                             # the BLAS build
+        return None
+    out = residual if residual is not None else torch.empty(
+        (x.shape[0], conv.out_channels) + x.shape[2:], dtype=x.dtype, memory_format=CL)
+    return winograd.forward(lib, x, wrap, entry.wino[1], conv.out_channels, entry.bias, out, residual is not None,
+                            act == "relu")
+
+
 def conv_bn_act(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None = None, act: Activation = None,
                 residual: Tensor | None = None, into_residual: bool = False, ready: bool = False) -> Tensor:
     """``act(bn(conv(x)) + residual)``: ``x (B, Cin, H, W)``, ``residual`` ``None`` or ``(B, Cout, Ho, Wo)`` ->
@@ -305,6 +331,8 @@ def _fast(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None, act: Activation, res
     the layer's own ``_conv_forward`` with the folded weight."""
     entry = _entry(conv, bn)
     if into_residual and residual is not None and (y := _dense_into(x, conv, entry, act, residual)) is not None:
+        return y
+    if (residual is None or into_residual) and (y := _winograd(x, conv, entry, act, residual)) is not None:
         return y
     if _packable(conv) and x.is_contiguous(memory_format=torch.channels_last):
         if isinstance(conv, CircularConv2d):

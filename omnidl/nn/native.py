@@ -136,6 +136,12 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_fc_packed_floats.restype = n
     lib.omnidl_dense_forward.argtypes = [p, n, i, n, p, p, i, p, p, n, i, i, n, i]
     lib.omnidl_dense_forward.restype = i
+    lib.omnidl_wino_packed_floats.argtypes = [i, i]
+    lib.omnidl_wino_packed_floats.restype = n
+    lib.omnidl_wino_pack.argtypes = [p, i, i, p, i]
+    lib.omnidl_wino_pack.restype = i
+    lib.omnidl_wino_forward.argtypes = [p, i, i, i, i, i, p, i, p, p, i, i, i, i]
+    lib.omnidl_wino_forward.restype = i
     lib.omnidl_lstm_layer.argtypes = [n, i, n, p, p, p, p, p, p, p, i]
     lib.omnidl_lstm_layer.restype = i
     lib.omnidl_lstm_padded_width.argtypes = [n]

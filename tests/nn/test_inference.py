@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 import omnidl.nn.inference as inf
 from omnidl.cameras import Equirectangular
+from omnidl.nn import winograd
 from omnidl.nn.inference import conv_bn_act, fold_batchnorm, inference_ready
 from omnidl.nn.padding import CircularConv2d
 from omnidl.nn.projected_conv import ProjectedConv2d
@@ -98,7 +99,8 @@ def test_fast_path_equals_the_modules(name, make, shape, bn, act, residual, fmt)
     torch.testing.assert_close(again, out, rtol=0, atol=0)
 
 
-def test_packed_path_runs_one_onednn_call_and_keeps_channels_last():
+def test_packed_path_runs_one_onednn_call_and_keeps_channels_last(monkeypatch):
+    monkeypatch.setattr(winograd, "ENABLED", False)       # a 3x3 stride-1 layer otherwise takes Winograd
     conv, bn = nn.Conv2d(8, 12, 3, padding=1).eval(), _bn(12)
     x = torch.randn(1, 8, 10, 16).contiguous(memory_format=CL)
     with torch.no_grad(), torch.profiler.profile() as prof:
@@ -259,9 +261,10 @@ def test_cache_is_dropped_with_its_layer_and_by_clear_cache():
     assert len(inf._CACHE) == n - 1
 
 
-def test_weights_are_packed_per_thread_count():
+def test_weights_are_packed_per_thread_count(monkeypatch):
     """oneDNN chooses the blocked layout for the thread count: a weight packed for 2 threads and used on 1 would
     be re-laid out on every call, so each thread count gets its own packing (same results)."""
+    monkeypatch.setattr(winograd, "ENABLED", False)
     conv, bn = nn.Conv2d(8, 12, 3, padding=1).eval(), _bn(12)
     x = torch.randn(1, 8, 6, 10).contiguous(memory_format=CL)
     prev = torch.get_num_threads()
@@ -335,6 +338,7 @@ def test_a_failing_onednn_op_falls_back_for_good_with_one_warning(monkeypatch):
 
     monkeypatch.setattr(inf, "ENABLED", True)
     monkeypatch.setattr(inf, "_pointwise", broken)
+    monkeypatch.setattr(winograd, "ENABLED", False)
     conv, bn = nn.Conv2d(8, 12, 3, padding=1).eval(), _bn(12)
     x = torch.randn(1, 8, 6, 10).contiguous(memory_format=CL)
     with torch.no_grad():

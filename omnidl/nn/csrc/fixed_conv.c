@@ -593,3 +593,196 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
     free(hi);
     return err;
 }
+
+/* ---- Winograd F(2x2, 3x3): a stride-1 3x3 convolution with 2.25x fewer multiplications ----------------------
+ *
+ * Each 2x2 block of outputs ("tile") is Y = A^T [ U (.) V ] A with V = B^T d B from the tile's 4x4 input patch d
+ * and U = G g G^T from the 3x3 filter g (per input and output channel); summed over the input channels, the 16
+ * element-wise products become 16 matrix products M[xi] (tiles, cout) = V[xi] (tiles, C) @ U[xi] (C, cout), run on
+ * the register kernel. Per block of tiles the transformed inputs and products stay in the core's cache.
+ *     B^T = [1 0 -1 0; 0 1 1 0; 0 -1 1 0; 0 1 0 -1]   G = [1 0 0; .5 .5 .5; .5 -.5 .5; 0 0 1]   A^T = [1 1 1 0; 0 1 -1 -1]
+ * Padding: one row of zeros above and below; one column each side of zeros, or the wrapped column (wrap = 1).
+ * Rounding differs from the direct sum by a few float32 ulps of the operands' scale (the transforms add and
+ * subtract up to 4 terms before the product).
+ */
+
+/* floats of omnidl_wino_pack's output for C input and cout output channels (0 on the BLAS build) */
+int64_t omnidl_wino_packed_floats(int C, int cout) {
+#if HAVE_KERNEL
+    return 16 * packed_floats(C, cout);
+#else
+    (void)C; (void)cout;
+    return 0;
+#endif
+}
+
+/* w (cout, C, 3, 3) contiguous -> 16 packed panels sets of U[xi] (C, cout). Returns 0, 1 when out of memory, 2 on
+ * the BLAS build. */
+int omnidl_wino_pack(const float *w, int cout, int C, float *up, int nthreads) {
+#if HAVE_KERNEL
+    float *u = (float *)malloc(sizeof(float) * 16 * (size_t)C * (size_t)cout);   /* U[xi][c][co] */
+    if (!u) return 1;
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+    for (int co = 0; co < cout; ++co) {
+        for (int c = 0; c < C; ++c) {
+            const float *g = w + ((int64_t)co * C + c) * 9;
+            float t[4][3];                               /* G g */
+            for (int j = 0; j < 3; ++j) {
+                t[0][j] = g[j];
+                t[1][j] = 0.5f * (g[j] + g[3 + j] + g[6 + j]);
+                t[2][j] = 0.5f * (g[j] - g[3 + j] + g[6 + j]);
+                t[3][j] = g[6 + j];
+            }
+            for (int i = 0; i < 4; ++i) {                /* (G g) G^T */
+                const float r[4] = {t[i][0], 0.5f * (t[i][0] + t[i][1] + t[i][2]), 0.5f * (t[i][0] - t[i][1] + t[i][2]),
+                                    t[i][2]};
+                for (int j = 0; j < 4; ++j) u[((int64_t)(4 * i + j) * C + c) * cout + co] = r[j];
+            }
+        }
+    }
+    const int64_t stride = packed_floats(C, cout);
+    for (int xi = 0; xi < 16; ++xi) pack_b(C, cout, u + (int64_t)xi * C * cout, cout, 1, up + xi * stride);
+    free(u);
+    return 0;
+#else
+    (void)w; (void)cout; (void)C; (void)up; (void)nthreads;
+    return 2;
+#endif
+}
+
+#if HAVE_KERNEL
+/* V[xi][i][c] of the tiles t0..t0+m-1 of image rows x (H, W, C); zero: C zeros */
+/* floats between the 16 planes of a block's transformed tiles: a cache line more than the plane, so the 16
+ * streams do not fall into the same cache sets (planes of a multiple of 4 kB would) */
+static int64_t wino_plane(int m, int n) { return (int64_t)m * n + 16; }
+
+static void wino_input(const float *x, int H, int W, int C, int wrap, const float *zero, int64_t t0, int m, int tw,
+                       float *V) {
+    const int64_t plane = wino_plane(m, C);
+    for (int i = 0; i < m; ++i) {
+        const int64_t t = t0 + i;
+        const int ty = (int)(t / tw), tx = (int)(t % tw);
+        const float *p[4][4];
+        for (int a = 0; a < 4; ++a) {
+            const int r = 2 * ty - 1 + a;
+            for (int b = 0; b < 4; ++b) {
+                int col = 2 * tx - 1 + b;
+                if (wrap) col = (col + W) % W;
+                p[a][b] = (r < 0 || r >= H || col < 0 || col >= W) ? zero : x + ((int64_t)r * W + col) * C;
+            }
+        }
+        float *v = V + (int64_t)i * C;
+        const float *restrict p00 = p[0][0], *restrict p01 = p[0][1], *restrict p02 = p[0][2], *restrict p03 = p[0][3];
+        const float *restrict p10 = p[1][0], *restrict p11 = p[1][1], *restrict p12 = p[1][2], *restrict p13 = p[1][3];
+        const float *restrict p20 = p[2][0], *restrict p21 = p[2][1], *restrict p22 = p[2][2], *restrict p23 = p[2][3];
+        const float *restrict p30 = p[3][0], *restrict p31 = p[3][1], *restrict p32 = p[3][2], *restrict p33 = p[3][3];
+        float *restrict v0 = v, *restrict v1 = v + plane, *restrict v2 = v + 2 * plane, *restrict v3 = v + 3 * plane;
+        float *restrict v4 = v + 4 * plane, *restrict v5 = v + 5 * plane, *restrict v6 = v + 6 * plane;
+        float *restrict v7 = v + 7 * plane, *restrict v8 = v + 8 * plane, *restrict v9 = v + 9 * plane;
+        float *restrict v10 = v + 10 * plane, *restrict v11 = v + 11 * plane, *restrict v12 = v + 12 * plane;
+        float *restrict v13 = v + 13 * plane, *restrict v14 = v + 14 * plane, *restrict v15 = v + 15 * plane;
+        for (int c = 0; c < C; ++c) {
+            /* rows of B^T d: s_a_b */
+            const float s00 = p00[c] - p20[c], s01 = p01[c] - p21[c], s02 = p02[c] - p22[c], s03 = p03[c] - p23[c];
+            const float s10 = p10[c] + p20[c], s11 = p11[c] + p21[c], s12 = p12[c] + p22[c], s13 = p13[c] + p23[c];
+            const float s20 = p20[c] - p10[c], s21 = p21[c] - p11[c], s22 = p22[c] - p12[c], s23 = p23[c] - p13[c];
+            const float s30 = p10[c] - p30[c], s31 = p11[c] - p31[c], s32 = p12[c] - p32[c], s33 = p13[c] - p33[c];
+            v0[c] = s00 - s02; v1[c] = s01 + s02; v2[c] = s02 - s01; v3[c] = s01 - s03;
+            v4[c] = s10 - s12; v5[c] = s11 + s12; v6[c] = s12 - s11; v7[c] = s11 - s13;
+            v8[c] = s20 - s22; v9[c] = s21 + s22; v10[c] = s22 - s21; v11[c] = s21 - s23;
+            v12[c] = s30 - s32; v13[c] = s31 + s32; v14[c] = s32 - s31; v15[c] = s31 - s33;
+        }
+    }
+}
+
+/* out rows of tiles t0..: Y = A^T M A (+ bias) (+ out when accumulate) (ReLU) */
+static void wino_output(const float *M, int m, int cout, const float *bias, float *out, int H, int W, int64_t t0,
+                        int tw, int accumulate, int relu) {
+    const int64_t plane = wino_plane(m, cout);
+    for (int i = 0; i < m; ++i) {
+        const int64_t t = t0 + i;
+        const int ty = (int)(t / tw), tx = (int)(t % tw);
+        const float *mm = M + (int64_t)i * cout;
+        float *o[2][2];
+        for (int a = 0; a < 2; ++a)
+            for (int b = 0; b < 2; ++b) {
+                const int r = 2 * ty + a, col = 2 * tx + b;
+                o[a][b] = (r < H && col < W) ? out + ((int64_t)r * W + col) * cout : NULL;
+            }
+        const float *restrict q0 = mm, *restrict q1 = mm + plane, *restrict q2 = mm + 2 * plane, *restrict q3 = mm + 3 * plane;
+        const float *restrict q4 = mm + 4 * plane, *restrict q5 = mm + 5 * plane, *restrict q6 = mm + 6 * plane;
+        const float *restrict q7 = mm + 7 * plane, *restrict q8 = mm + 8 * plane, *restrict q9 = mm + 9 * plane;
+        const float *restrict q10 = mm + 10 * plane, *restrict q11 = mm + 11 * plane, *restrict q12 = mm + 12 * plane;
+        const float *restrict q13 = mm + 13 * plane, *restrict q14 = mm + 14 * plane, *restrict q15 = mm + 15 * plane;
+        float y[4][64];
+        for (int c0 = 0; c0 < cout; c0 += 64) {
+            const int n = cout - c0 < 64 ? cout - c0 : 64;
+            for (int j = 0; j < n; ++j) {
+                const int co = c0 + j;
+                /* A^T q: u_a_b */
+                const float u00 = q0[co] + q4[co] + q8[co], u01 = q1[co] + q5[co] + q9[co];
+                const float u02 = q2[co] + q6[co] + q10[co], u03 = q3[co] + q7[co] + q11[co];
+                const float u10 = q4[co] - q8[co] - q12[co], u11 = q5[co] - q9[co] - q13[co];
+                const float u12 = q6[co] - q10[co] - q14[co], u13 = q7[co] - q11[co] - q15[co];
+                const float bb = bias ? bias[co] : 0.0f;
+                y[0][j] = u00 + u01 + u02 + bb;
+                y[1][j] = u01 - u02 - u03 + bb;
+                y[2][j] = u10 + u11 + u12 + bb;
+                y[3][j] = u11 - u12 - u13 + bb;
+            }
+            for (int k = 0; k < 4; ++k) {
+                float *ok = o[k / 2][k % 2];
+                if (!ok) continue;
+                ok += c0;
+                for (int j = 0; j < n; ++j) {
+                    const float v = y[k][j] + (accumulate ? ok[j] : 0.0f);
+                    ok[j] = relu && v < 0.0f ? 0.0f : v;   /* NaN stays NaN */
+                }
+            }
+        }
+    }
+}
+#endif
+
+/* Stride-1 3x3 convolution of B images x (B, H, W, C) channels-last into out (B, H, W, cout) by Winograd F(2x2, 3x3)
+ * with `up` from omnidl_wino_pack; bias may be NULL; accumulate: add into out (a residual); relu. Tiles are split
+ * among `nthreads` OpenMP threads in blocks of `block` tiles. Returns 0, 1 when out of memory, 2 on the BLAS build. */
+int omnidl_wino_forward(const float *x, int B, int H, int W, int C, int wrap, const float *up, int cout,
+                        const float *bias, float *out, int accumulate, int relu, int block, int nthreads) {
+#if HAVE_KERNEL
+    const int th = (H + 1) / 2, tw = (W + 1) / 2;
+    const int64_t T = (int64_t)th * tw, total = (int64_t)B * T, stride = packed_floats(C, cout);
+    int err = 0;
+#pragma omp parallel num_threads(nthreads) reduction(| : err)
+    {
+        int t, nt;
+        team(&t, &nt);
+        const int64_t s0 = span_edge(total, t, nt), s1 = span_edge(total, t + 1, nt);
+        float *V = (float *)malloc(sizeof(float) * 16 * (size_t)(wino_plane(block, C) + wino_plane(block, cout)));
+        float *zero = (float *)calloc((size_t)C, sizeof(float));
+        if (!V || !zero) {
+            err = 1;
+        } else {
+            float *M = V + 16 * wino_plane(block, C);
+            for (int64_t s = s0; s < s1;) {
+                const int64_t b = s / T, t0 = s % T;
+                const int m = (int)min64(block, min64(s1 - s, T - t0));
+                const float *xb = x + b * (int64_t)H * W * C;
+                wino_input(xb, H, W, C, wrap, zero, t0, m, tw, V);
+                for (int xi = 0; xi < 16; ++xi)
+                    gemm_packed(m, cout, C, V + xi * wino_plane(m, C), C, 1, up + xi * stride, M + xi * wino_plane(m, cout),
+                                cout, 0);
+                wino_output(M, m, cout, bias, out + b * (int64_t)H * W * cout, H, W, t0, tw, accumulate, relu);
+                s += m;
+            }
+        }
+        free(V);
+        free(zero);
+    }
+    return err;
+#else
+    (void)x; (void)B; (void)H; (void)W; (void)C; (void)wrap; (void)up; (void)cout; (void)bias; (void)out;
+    (void)accumulate; (void)relu; (void)block; (void)nthreads;
+    return 2;
+#endif
+}

@@ -1,0 +1,81 @@
+"""Winograd F(2x2, 3x3) for stride-1 3x3 inference convolutions on the native kernel (``csrc/fixed_conv.c``).
+
+Each 2x2 block of outputs is ``A^T [U (.) V] A`` with ``V = B^T d B`` from its 4x4 input patch and ``U = G g G^T``
+from the filter, so a 3x3 convolution becomes 16 matrix products ``(tiles, C) @ (C, Cout)``: 2.25x fewer
+multiplications than the direct sum. The products run on omnidl's register kernel, per block of tiles whose
+transformed inputs and products stay in the core's cache; the transforms add and subtract up to 4 terms each way,
+so results differ from the direct sum by a few float32 ulps of the operands' scale (well inside 1e-5 relative).
+Measured on 2 threads (AVX-512 host), against the folded, prepacked oneDNN convolution + ReLU of
+:mod:`omnidl.nn.inference`: 64 channels on 64x128 1.15 against 1.72 ms, 128 on 32x64 0.9 against 1.6 ms, 256 on
+16x32 0.93 against 1.52 ms, 512 on 8x16 1.37 against 1.58 ms; at 128x256, 64 channels 4.7 against 5.9 ms.
+
+:func:`wrap_mode` says whether a layer qualifies (``nn.Conv2d`` with zero padding 1 or
+:class:`~omnidl.nn.padding.CircularConv2d` with wrap padding 1; 3x3, stride 1, no dilation or groups; at most
+512 x 512 channels, beyond which the 16 transformed weights, 1.8x the weight, stream from memory on every block);
+:func:`pack` transforms and packs a weight once; :func:`forward` runs a layer.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from . import fused
+from .padding import CircularConv2d
+
+#: the largest ``in_channels * out_channels`` taken (the transformed weight is 16 / 9 of the weight's size)
+MAX_CHANNEL_PRODUCT = 512 * 512
+#: ``False`` leaves every layer to oneDNN (benchmarks' in-process A/B)
+ENABLED = True
+
+
+def wrap_mode(x: Tensor, conv: nn.Module) -> int | None:
+    """``1`` (horizontal wrap) or ``0`` (zero padding) where :func:`forward` computes ``conv`` on ``x``
+    (channels-last float32 on the CPU), else ``None``."""
+    if not (ENABLED and fused.ENABLED and conv.kernel_size == (3, 3) and conv.stride == (1, 1)
+            and conv.dilation == (1, 1) and conv.groups == 1
+            and conv.in_channels * conv.out_channels <= MAX_CHANNEL_PRODUCT
+            and x.dtype == torch.float32 and x.device.type == "cpu"
+            and x.is_contiguous(memory_format=torch.channels_last) and x.shape[-1] >= 2):
+        return None
+    if type(conv) is CircularConv2d:
+        return 1 if tuple(conv.wrap_padding) == (1, 1) else None
+    if type(conv) is nn.Conv2d:
+        return 0 if tuple(conv.padding) == (1, 1) and conv.padding_mode == "zeros" else None
+    return None
+
+
+def pack(lib, weight: Tensor) -> Tensor | None:
+    """The transformed, packed weight of ``weight (Cout, C, 3, 3)`` for :func:`forward` (``None`` on the BLAS
+    build, which has no register kernel)."""
+    cout, C = weight.shape[:2]
+    n = lib.omnidl_wino_packed_floats(C, cout)
+    if n == 0:
+        return None
+    w = weight.detach().contiguous()
+    up = torch.empty(n, dtype=torch.float32)
+    rc = lib.omnidl_wino_pack(w.data_ptr(), cout, C, up.data_ptr(), torch.get_num_threads())
+    if rc == 1:
+        raise MemoryError("omnidl Winograd convolution: the native kernel could not allocate its buffers")
+    return up if rc == 0 else None
+
+
+def block_tiles(C: int, cout: int) -> int:
+    """Tiles per block: their transformed inputs and products about :data:`omnidl.nn.fused.BLOCK_BYTES`, a multiple
+    of :data:`omnidl.nn.fused.TILE_ROWS`, at least 24."""
+    t = fused.TILE_ROWS
+    return max(24, fused.BLOCK_BYTES // (64 * (C + cout)) // t * t)
+
+
+def forward(lib, x: Tensor, wrap: int, packed: Tensor, cout: int, bias: Tensor | None, out: Tensor,
+            accumulate: bool, relu: bool) -> Tensor:
+    """``out = [relu](conv(x) + bias [+ out])`` for ``x (B, C, H, W)`` and ``out (B, cout, H, W)``, both
+    channels-last; ``packed`` from :func:`pack`."""
+    B, C, H, W = x.shape
+    rc = lib.omnidl_wino_forward(x.data_ptr(), B, H, W, C, int(wrap), packed.data_ptr(), cout,
+                                 None if bias is None else bias.data_ptr(), out.data_ptr(), int(accumulate),
+                                 int(relu), block_tiles(C, cout), torch.get_num_threads())
+    if rc == 1:
+        raise MemoryError("omnidl Winograd convolution: the native kernel could not allocate its buffers")
+    if rc:
+        raise RuntimeError(f"omnidl Winograd convolution: the native kernel returned {rc}")
+    return out
