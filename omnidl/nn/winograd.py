@@ -9,9 +9,11 @@ Measured on 2 threads (AVX-512 host), against the folded, prepacked oneDNN convo
 :mod:`omnidl.nn.inference`: 64 channels on 64x128 1.15 against 1.72 ms, 128 on 32x64 0.9 against 1.6 ms, 256 on
 16x32 0.93 against 1.52 ms, 512 on 8x16 1.37 against 1.58 ms; at 128x256, 64 channels 4.7 against 5.9 ms.
 
-:func:`wrap_mode` says whether a layer qualifies (``nn.Conv2d`` with zero padding 1 or
-:class:`~omnidl.nn.padding.CircularConv2d` with wrap padding 1; 3x3, stride 1, no dilation or groups; at most
-512 x 512 channels, beyond which the 16 transformed weights, 1.8x the weight, stream from memory on every block);
+:func:`wrap_mode` says whether a layer qualifies: ``nn.Conv2d`` with zero padding 1 or
+:class:`~omnidl.nn.padding.CircularConv2d` with wrap padding 1; 3x3, stride 1, no dilation or groups; 32 to 512
+channels each way; and at least ``max(C, Cout) / 4 + 16`` tiles (2x2 outputs) in the batch. On fewer tiles the 16
+transformed weights (1.8x the weight) are read for too few products: 512 channels on 4x8 took 2.2 against 0.87 ms,
+256 on 8x16 0.76 against 0.58 ms, where 256 on 16x32 took 0.93 against 1.52 ms.
 :func:`pack` transforms and packs a weight once; :func:`forward` runs a layer.
 """
 from __future__ import annotations
@@ -24,6 +26,9 @@ from .padding import CircularConv2d
 
 #: the largest ``in_channels * out_channels`` taken (the transformed weight is 16 / 9 of the weight's size)
 MAX_CHANNEL_PRODUCT = 512 * 512
+#: the fewest input and output channels taken: with fewer the transforms outweigh the saved products (16 channels
+#: on 64x128 ran 1.22x oneDNN's time)
+MIN_CHANNELS = 32
 #: ``False`` leaves every layer to oneDNN (benchmarks' in-process A/B)
 ENABLED = True
 
@@ -32,10 +37,13 @@ def wrap_mode(x: Tensor, conv: nn.Module) -> int | None:
     """``1`` (horizontal wrap) or ``0`` (zero padding) where :func:`forward` computes ``conv`` on ``x``
     (channels-last float32 on the CPU), else ``None``."""
     if not (ENABLED and fused.ENABLED and conv.kernel_size == (3, 3) and conv.stride == (1, 1)
-            and conv.dilation == (1, 1) and conv.groups == 1
+            and conv.dilation == (1, 1) and conv.groups == 1 and x.dim() == 4
+            and MIN_CHANNELS <= min(conv.in_channels, conv.out_channels)
             and conv.in_channels * conv.out_channels <= MAX_CHANNEL_PRODUCT
             and x.dtype == torch.float32 and x.device.type == "cpu"
-            and x.is_contiguous(memory_format=torch.channels_last) and x.shape[-1] >= 2):
+            and x.is_contiguous(memory_format=torch.channels_last) and x.shape[-1] >= 2
+            and x.shape[0] * ((x.shape[-2] + 1) // 2) * ((x.shape[-1] + 1) // 2)
+            >= max(conv.in_channels, conv.out_channels) // 4 + 16):
         return None
     if type(conv) is CircularConv2d:
         return 1 if tuple(conv.wrap_padding) == (1, 1) else None
