@@ -89,18 +89,25 @@ def test_a_nan_pixel_reaches_only_its_neighbourhood():
 
 # (name, module, input, verdict)
 RULE = [
-    ("plain 3x3, padding 1", lambda: nn.Conv2d(8, 8, 3, padding=1), (1, 8, 6, 6), 0),
-    ("CircularConv2d 3x3, padding 1", lambda: CircularConv2d(8, 8, 3, padding=1), (1, 8, 6, 6), 1),
-    ("stride 2", lambda: nn.Conv2d(8, 8, 3, stride=2, padding=1), (1, 8, 6, 6), None),
-    ("dilation 2", lambda: nn.Conv2d(8, 8, 3, padding=2, dilation=2), (1, 8, 6, 6), None),
-    ("groups 2", lambda: nn.Conv2d(8, 8, 3, padding=1, groups=2), (1, 8, 6, 6), None),
-    ("padding 0", lambda: nn.Conv2d(8, 8, 3), (1, 8, 6, 6), None),
-    ("reflect padding", lambda: nn.Conv2d(8, 8, 3, padding=1, padding_mode="reflect"), (1, 8, 6, 6), None),
-    ("5x5", lambda: nn.Conv2d(8, 8, 5, padding=2), (1, 8, 6, 6), None),
-    ("1024 x 512 channels (over the rule's product)", lambda: nn.Conv2d(1024, 512, 3, padding=1), (1, 1024, 2, 2),
-     None),
-    ("CircularConv2d with padding (1, 0)", lambda: CircularConv2d(8, 8, 3, padding=(1, 0)), (1, 8, 6, 6), None),
-    ("one column", lambda: nn.Conv2d(8, 8, 3, padding=1), (1, 8, 6, 1), None),
+    ("plain 3x3, padding 1", lambda: nn.Conv2d(32, 32, 3, padding=1), (1, 32, 12, 12), 0),
+    ("CircularConv2d 3x3, padding 1", lambda: CircularConv2d(32, 32, 3, padding=1), (1, 32, 12, 12), 1),
+    ("stride 2", lambda: nn.Conv2d(32, 32, 3, stride=2, padding=1), (1, 32, 12, 12), None),
+    ("dilation 2", lambda: nn.Conv2d(32, 32, 3, padding=2, dilation=2), (1, 32, 12, 12), None),
+    ("groups 2", lambda: nn.Conv2d(32, 32, 3, padding=1, groups=2), (1, 32, 12, 12), None),
+    ("padding 0", lambda: nn.Conv2d(32, 32, 3), (1, 32, 12, 12), None),
+    ("reflect padding", lambda: nn.Conv2d(32, 32, 3, padding=1, padding_mode="reflect"), (1, 32, 12, 12), None),
+    ("5x5", lambda: nn.Conv2d(32, 32, 5, padding=2), (1, 32, 12, 12), None),
+    ("CircularConv2d with padding (1, 0)", lambda: CircularConv2d(32, 32, 3, padding=(1, 0)), (1, 32, 12, 12), None),
+    ("one column", lambda: nn.Conv2d(32, 32, 3, padding=1), (1, 32, 48, 1), None),
+    ("16 input channels (fewer than 32)", lambda: nn.Conv2d(16, 64, 3, padding=1), (1, 16, 12, 12), None),
+    ("16 output channels", lambda: nn.Conv2d(64, 16, 3, padding=1), (1, 64, 12, 12), None),
+    ("1024 x 512 channels (over the largest product)", lambda: nn.Conv2d(1024, 512, 3, padding=1),
+     (1, 1024, 32, 32), None),
+    ("512 x 512 on 24x24 (144 tiles: enough)", lambda: nn.Conv2d(512, 512, 3, padding=1), (1, 512, 24, 24), 0),
+    ("512 x 512 on 8x16 (32 tiles, 144 needed)", lambda: nn.Conv2d(512, 512, 3, padding=1), (1, 512, 8, 16), None),
+    ("256 x 256 on 16x20 (80 tiles: just enough)", lambda: nn.Conv2d(256, 256, 3, padding=1), (1, 256, 16, 20), 0),
+    ("256 x 256 on 16x18 (72 tiles)", lambda: nn.Conv2d(256, 256, 3, padding=1), (1, 256, 16, 18), None),
+    ("the batch's tiles count", lambda: nn.Conv2d(256, 256, 3, padding=1), (2, 256, 8, 20), 0),
 ]
 
 
@@ -111,8 +118,8 @@ def test_the_rule(name, make, shape, verdict):
 
 
 def test_the_rule_needs_channels_last_float32_cpu():
-    conv = nn.Conv2d(8, 8, 3, padding=1)
-    x = torch.randn(1, 8, 6, 6)
+    conv = nn.Conv2d(32, 32, 3, padding=1)
+    x = torch.randn(1, 32, 12, 12)
     assert winograd.wrap_mode(x, conv) is None                                   # NCHW
     assert winograd.wrap_mode(x.double().contiguous(memory_format=CL), conv) is None
     assert winograd.wrap_mode(x.contiguous(memory_format=CL), conv) == 0
@@ -120,9 +127,10 @@ def test_the_rule_needs_channels_last_float32_cpu():
 
 def test_the_inference_path_takes_it_and_can_be_turned_off(monkeypatch):
     torch.manual_seed(3)
-    conv = CircularConv2d(16, 24, 3, padding=1).eval()
-    bn = nn.BatchNorm2d(24).eval()
-    x = torch.randn(1, 16, 8, 12).contiguous(memory_format=CL)
+    conv = CircularConv2d(32, 48, 3, padding=1).eval()
+    bn = nn.BatchNorm2d(48).eval()
+    x = torch.randn(1, 32, 8, 16).contiguous(memory_format=CL)
+    assert winograd.wrap_mode(x, conv) == 1
     with torch.no_grad():
         ref = F.relu(bn(conv(x)))
         with torch.profiler.profile() as prof:
@@ -143,8 +151,9 @@ def test_other_builds(build, request):
     (``pack`` gives ``None``) and the inference path then takes oneDNN."""
     request.getfixturevalue(build)
     torch.manual_seed(4)
-    conv, bn = nn.Conv2d(12, 20, 3, padding=1).eval(), nn.BatchNorm2d(20).eval()
-    x = torch.randn(2, 12, 7, 9).contiguous(memory_format=CL)
+    conv, bn = nn.Conv2d(32, 40, 3, padding=1).eval(), nn.BatchNorm2d(40).eval()
+    x = torch.randn(2, 32, 8, 11).contiguous(memory_format=CL)
+    assert winograd.wrap_mode(x, conv) == 0
     lib = native.library()
     assert (winograd.pack(lib, conv.weight) is None) == (build == "generic_x86_build")
     with torch.no_grad():
