@@ -223,6 +223,14 @@ def _wrapped(x: Tensor, conv: CircularConv2d, entry: _Entry, act: Activation, re
 DENSE_BLOCK = 96
 
 
+def _writable_residual(x: Tensor, residual: Tensor, cout: int) -> bool:
+    """Whether a native kernel may write a stride-1 layer's output over ``residual`` while it reads ``x``: a plain
+    channels-last tensor of the output's shape and dtype, outside autograd, not sharing ``x``'s storage."""
+    return (type(residual) is torch.Tensor and residual.shape == (x.shape[0], cout) + tuple(x.shape[2:])
+            and residual.dtype == x.dtype and residual.is_contiguous(memory_format=CL) and not residual.requires_grad
+            and residual.untyped_storage().data_ptr() != x.untyped_storage().data_ptr())
+
+
 def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, residual: Tensor) -> Tensor | None:
     """``act(conv(x) + residual)`` for a dense 1x1, stride-1 convolution, written over ``residual`` by the native
     kernel (``omnidl_dense_forward``: the product straight from the channels-last rows of ``x``, the sum and the
@@ -232,9 +240,7 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
     cout = conv.out_channels
     if not (fused.ENABLED and conv.kernel_size == (1, 1) and conv.stride == (1, 1) and tuple(conv.padding) == (0, 0)
             and conv.groups == 1 and type(conv) is nn.Conv2d and x.is_contiguous(memory_format=CL)
-            and type(residual) is torch.Tensor and residual.shape == (B, cout, H, W) and residual.dtype == x.dtype
-            and residual.is_contiguous(memory_format=CL) and not residual.requires_grad
-            and residual.untyped_storage().data_ptr() != x.untyped_storage().data_ptr()):   # written while x is read
+            and _writable_residual(x, residual, cout)):
         return None
     lib = native.library()
     if lib is None:
@@ -259,11 +265,7 @@ def _winograd(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, residu
     (:mod:`omnidl.nn.winograd`), written over ``residual`` when given (the caller no longer needs it); ``None``
     where it does not apply."""
     wrap = winograd.wrap_mode(x, conv)
-    if wrap is None or (residual is not None and not (
-            type(residual) is torch.Tensor and residual.shape == (x.shape[0], conv.out_channels) + x.shape[2:]
-            and residual.dtype == x.dtype and residual.is_contiguous(memory_format=CL)
-            and not residual.requires_grad
-            and residual.untyped_storage().data_ptr() != x.untyped_storage().data_ptr())):
+    if wrap is None or (residual is not None and not _writable_residual(x, residual, conv.out_channels)):
         return None
     lib = native.library()
     if lib is None:
