@@ -70,7 +70,7 @@ class _Entry:
         self.conv = weakref.ref(conv)
         self.weight: Tensor | None = None
         self.packed: dict[tuple, Tensor] = {}
-        self.dense: tuple[int, Tensor | None, Tensor | None] | None = None
+        self.dense: tuple[int, tuple[Tensor | None, Tensor | None]] | None = None   # (kernel kind, packing)
         self.wino: tuple[int, Tensor | None] | None = None
 
     def folded_weight(self, keep: bool) -> Tensor:
@@ -223,6 +223,20 @@ def _wrapped(x: Tensor, conv: CircularConv2d, entry: _Entry, act: Activation, re
 DENSE_BLOCK = 96
 
 
+def _native_packing(entry: _Entry, slot: str, pack) -> tuple:
+    """``(library, entry.<slot>'s kept packing)``, the packing made by ``pack(library)`` when missing or made for
+    another build's kernel (packings depend on it); ``(None, None)`` without the native library."""
+    lib = native.library()
+    if lib is None:
+        return None, None
+    kind = lib.omnidl_fc_kernel()
+    kept = getattr(entry, slot)
+    if kept is None or kept[0] != kind:
+        kept = (kind, pack(lib))
+        setattr(entry, slot, kept)
+    return lib, kept[1]
+
+
 def _writable_residual(x: Tensor, residual: Tensor, cout: int) -> bool:
     """Whether a native kernel may write a stride-1 layer's output over ``residual`` while it reads ``x``: a plain
     channels-last tensor of the output's shape and dtype, outside autograd, not sharing ``x``'s storage."""
@@ -242,15 +256,15 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
             and conv.groups == 1 and type(conv) is nn.Conv2d and x.is_contiguous(memory_format=CL)
             and _writable_residual(x, residual, cout)):
         return None
-    lib = native.library()
-    if lib is None:
-        return None
-    kind = lib.omnidl_fc_kernel()                         # the packing depends on the build's kernel
-    if entry.dense is None or entry.dense[0] != kind:
+
+    def pack(lib) -> tuple[Tensor | None, Tensor | None]:                    # (kernel's packing, BLAS build's Wm)
         w = entry.folded_weight(keep=False)
         wp = fused._packed(lib, w, transpose=False, keep=False)
-        entry.dense = (kind, wp, w.reshape(cout, C).t().contiguous() if wp is None else None)   # (kernel, BLAS)
-    _, wp, wm = entry.dense
+        return wp, (w.reshape(cout, C).t().contiguous() if wp is None else None)
+    lib, packing = _native_packing(entry, "dense", pack)
+    if lib is None:
+        return None
+    wp, wm = packing
     rc = lib.omnidl_dense_forward(x.data_ptr(), C, C, B * H * W, None if wm is None else wm.data_ptr(),
                                   None if wp is None else wp.data_ptr(), cout,
                                   None if entry.bias is None else entry.bias.data_ptr(), residual.data_ptr(), cout,
@@ -267,17 +281,12 @@ def _winograd(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, residu
     wrap = winograd.wrap_mode(x, conv)
     if wrap is None or (residual is not None and not _writable_residual(x, residual, conv.out_channels)):
         return None
-    lib = native.library()
-    if lib is None:
-        return None
-    kind = lib.omnidl_fc_kernel()                         # the packing depends on the build's kernel
-    if entry.wino is None or entry.wino[0] != kind:
-        entry.wino = (kind, winograd.pack(lib, entry.folded_weight(keep=False)))
-    if entry.wino[1] is None:                             # the BLAS build
+    lib, packed = _native_packing(entry, "wino", lambda lib: winograd.pack(lib, entry.folded_weight(keep=False)))
+    if lib is None or packed is None:                     # no native library, or the BLAS build
         return None
     out = residual if residual is not None else torch.empty(
         (x.shape[0], conv.out_channels) + x.shape[2:], dtype=x.dtype, memory_format=CL)
-    return winograd.forward(lib, x, wrap, entry.wino[1], conv.out_channels, entry.bias, out, residual is not None,
+    return winograd.forward(lib, x, wrap, packed, conv.out_channels, entry.bias, out, residual is not None,
                             act == "relu")
 
 
