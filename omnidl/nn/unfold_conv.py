@@ -25,6 +25,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .offsets import _pair, output_size
+from .sampling import _is_channels_last
+
 #: the unfolded product runs where ``out_channels >= WEIGHT_HEAVY_RATIO * B * Ho * Wo`` (the weight at least this
 #: many times the unfolded input, which has ``B * Ho * Wo`` columns of the same length as a weight row)
 WEIGHT_HEAVY_RATIO = 4
@@ -32,14 +35,6 @@ WEIGHT_HEAVY_RATIO = 4
 ENABLED = True
 
 _Pair = int | tuple[int, int]
-
-
-def _pair(v: _Pair) -> tuple[int, int]:
-    return (v, v) if isinstance(v, int) else (int(v[0]), int(v[1]))
-
-
-def _out_size(n: int, k: int, s: int, p: int, d: int) -> int:
-    return (n + 2 * p - d * (k - 1) - 1) // s + 1
 
 
 def weight_heavy(x: Tensor, weight: Tensor, stride: _Pair = 1, padding: _Pair | str = 0, dilation: _Pair = 1,
@@ -51,9 +46,12 @@ def weight_heavy(x: Tensor, weight: Tensor, stride: _Pair = 1, padding: _Pair | 
         return False
     if torch.jit.is_tracing() or torch.jit.is_scripting() or torch.compiler.is_compiling():
         return False
-    (kh, kw), (sh, sw), (ph, pw), (dh, dw) = weight.shape[-2:], _pair(stride), _pair(padding), _pair(dilation)
-    ho, wo = _out_size(x.shape[-2], kh, sh, ph, dh), _out_size(x.shape[-1], kw, sw, pw, dw)
-    return ho > 0 and wo > 0 and weight.shape[0] >= WEIGHT_HEAVY_RATIO * x.shape[0] * ho * wo
+    try:
+        ho, wo = output_size(tuple(x.shape[-2:]), tuple(weight.shape[-2:]), _pair(stride, "stride"),
+                             _pair(padding, "padding"), _pair(dilation, "dilation"))
+    except ValueError:                                    # no output position: F.conv2d gives its own error
+        return False
+    return weight.shape[0] >= WEIGHT_HEAVY_RATIO * x.shape[0] * ho * wo
 
 
 def unfold_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride: _Pair = 1, padding: _Pair = 0,
@@ -62,9 +60,9 @@ def unfold_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride:
     ``x (B, C, H, W)``, ``weight (Cout, C, kh, kw)`` -> ``(B, Cout, Ho, Wo)``, in ``x``'s memory format."""
     B, C, H, W = x.shape
     cout, _, kh, kw = weight.shape
-    (sh, sw), (ph, pw), (dh, dw) = _pair(stride), _pair(padding), _pair(dilation)
-    ho, wo = _out_size(H, kh, sh, ph, dh), _out_size(W, kw, sw, pw, dw)
-    cols = F.unfold(x, (kh, kw), dilation=(dh, dw), padding=(ph, pw), stride=(sh, sw))     # (B, C*kh*kw, L)
+    stride, padding, dilation = _pair(stride, "stride"), _pair(padding, "padding"), _pair(dilation, "dilation")
+    ho, wo = output_size((H, W), (kh, kw), stride, padding, dilation)
+    cols = F.unfold(x, (kh, kw), dilation=dilation, padding=padding, stride=stride)        # (B, C*kh*kw, L)
     if weight.is_contiguous(memory_format=torch.channels_last) and not weight.is_contiguous():
         # a channels-last weight is (Cout, kh, kw, C) in memory: a view of it as rows, the columns re-ordered to
         # match (a copy of the small operand, not of the weight)
@@ -79,7 +77,7 @@ def unfold_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride:
         if bias is not None:
             y = y + bias.view(1, cout, 1)
     y = y.view(B, cout, ho, wo)
-    if x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
+    if _is_channels_last(x):                               # as F.conv2d: also for a channel slice of such a map
         y = y.contiguous(memory_format=torch.channels_last)
     return y
 

@@ -138,3 +138,13 @@ def test_circular_conv_and_ffc_take_it_with_the_same_results(monkeypatch):
     monkeypatch.setattr(U, "ENABLED", False)
     for a, b in zip(out, ffc(xf)):
         _close(a, b, 1e-5)
+
+
+def test_a_channel_slice_of_a_channels_last_map_keeps_the_format():
+    """FFC hands its paths channel slices of a channels-last map: the output's format is F.conv2d's."""
+    x = torch.randn(1, 16, 3, 4).contiguous(memory_format=CL)[:, :8]
+    w = torch.randn(64, 8, 3, 3)
+    assert weight_heavy(x, w, 1, 1)
+    y, ref = unfold_conv2d(x, w, None, 1, 1), F.conv2d(x, w, None, 1, 1)
+    assert y.is_contiguous(memory_format=CL) == ref.is_contiguous(memory_format=CL) is True
+    _close(y, ref, 1e-5)
