@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.nn.ffc import FourierBlock
+from omnidl.nn import tap_projection
 from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_block
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
@@ -119,10 +120,16 @@ class FusionHead(nn.Module):
             ups = [F.interpolate(med(d), size=(H, W), mode="bilinear", align_corners=True)   # data-dependent
                    for med, d in zip(self.mediators, maps)]                                   # range: plain sum
             return self.out(ups[0] + sum(w * u for w, u in zip(self.branch_weights.unbind(), ups[1:])))
+        weights = [None] + list(self.branch_weights.unbind())
+        if tap_projection.pays(self.out.conv):
+            # few output channels (depth): project each map onto the output conv's taps first, so that the
+            # up-sampling and the sum run on Cout*9 channels (omnidl.nn.tap_projection)
+            taps = [self._taps(med, d) for med, d in zip(self.mediators, maps)]
+            y = tap_projection.shift_sum(self.out.conv, UpsampleSum(taps, weights, size=(H, W)).full())
+            return self.out.act(self.out.norm(y))
         blocked = can_block(self.out.conv)          # not for a distortion-aware output conv
         mediated = [med.row_source(d) if blocked and not self.training and d.shape[-2:] == (H, W) else med(d)
                     for med, d in zip(self.mediators, maps)]
-        weights = [None] + list(self.branch_weights.unbind())
         fused = UpsampleSum(mediated, weights, size=(H, W))      # sum_i w_i up(m_i), by row blocks
         if not blocked:
             return self.out(fused.full())
@@ -131,6 +138,18 @@ class FusionHead(nn.Module):
         block = rows_per_block(B, self.out.conv.in_channels, W) if not torch.is_grad_enabled() else H
         y = blocked_conv(self.out.conv, fused.rows, H, block)
         return self.out.act(self.out.norm(y))
+
+
+    def _taps(self, mediator: WConv, d: Tensor) -> Tensor:
+        """``project(out.conv, mediator(d))``; in eval mode without autograd by row blocks, so that the wide
+        mediator output of a large map never exists at once."""
+        conv = self.out.conv
+        if self.training or torch.is_grad_enabled():
+            return tap_projection.project(conv, mediator(d))
+        rows = mediator.row_source(d)
+        B, _, H, W = d.shape
+        block = rows_per_block(B, conv.in_channels, W)
+        return torch.cat([tap_projection.project(conv, rows(a, min(H, a + block))) for a in range(0, H, block)], 2)
 
 
 class FreDSNet(MemoryFormatPolicy, nn.Module):

@@ -19,3 +19,7 @@ __all__ += ["CircularConv2d", "PanoramaPad2d", "make_conv2d", "pad_panorama", "F
 from .fusion import UpsampleSum, blocked_conv, interpolation_matrix, upsample_sum
 
 __all__ += ["UpsampleSum", "blocked_conv", "interpolation_matrix", "upsample_sum"]
+
+from . import tap_projection
+
+__all__ += ["tap_projection"]

@@ -250,14 +250,21 @@ def test_hydra_configs_compose_and_build(overrides):
 
 @pytest.mark.parametrize("train", [False, True])
 @pytest.mark.parametrize("channels_last", [False, True])
-def test_fusion_head_is_the_weighted_sum_of_upsampled_maps(train, channels_last, monkeypatch):
-    """The row-blocked head (omnidl.nn.fusion) equals the literal formula, in eval and training, with gradients."""
+@pytest.mark.parametrize("mid,out,projected", [(4, 3, False), (24, 1, True)], ids=["row blocks", "tap projection"])
+def test_fusion_head_is_the_weighted_sum_of_upsampled_maps(train, channels_last, mid, out, projected, monkeypatch):
+    """The row-blocked head (omnidl.nn.fusion) and the head projected onto its output convolution's taps
+    (omnidl.nn.tap_projection, few output channels) equal the literal formula, in eval and training, with
+    gradients."""
     import omnidl.nn.fusion as fusion
+    import omnidl.nn.tap_projection as tap_projection
     from omnidl.models.fredsnet import FusionHead
     monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)          # several row blocks and deferred width passes
     monkeypatch.setattr(fusion, "MIN_BLOCK_ROWS", 8)       # (two 8-row blocks of the 16-row map)
+    calls = []
+    shift_sum = tap_projection.shift_sum
+    monkeypatch.setattr(tap_projection, "shift_sum", lambda *a: calls.append(1) or shift_sum(*a))
     torch.manual_seed(4)
-    head = FusionHead([8, 6, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
+    head = FusionHead([8, 6, 4], mid, out, activation="prelu", out_activation="relu", out_norm=True,
                       wconv_kwargs={}).double().train(train)
     with torch.no_grad():
         head.branch_weights.copy_(torch.tensor([-0.7, 1.3]))
@@ -276,6 +283,7 @@ def test_fusion_head_is_the_weighted_sum_of_upsampled_maps(train, channels_last,
     gb = torch.autograd.grad((expect * g).sum(), maps + list(literal.parameters()))
     for a, b in zip(ga, gb):
         torch.testing.assert_close(a, b)
+    assert bool(calls) == projected
 
 
 def test_channels_last_matches_contiguous_layout():

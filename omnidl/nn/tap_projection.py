@@ -1,0 +1,137 @@
+"""A "same" convolution with few output channels as a per-pixel projection onto its taps, then a shifted sum.
+
+A stride-1 convolution with kernel ``kh x kw`` and weight ``(Cout, C, kh, kw)`` is, for every tap ``k = (a, b)``,
+a ``1x1`` product with the slice ``W[:, :, a, b]`` read at the pixel shifted by the tap's offset::
+
+    z = P m            P (Cout*K, C) = the weight with its taps as rows, K = kh*kw     (B, Cout*K, h, w)
+    y = sum_k shift_k(z_k) + bias                                                      (B, Cout, H, W)
+
+``P`` acts on each pixel alone, so it commutes with every per-channel linear map of the pixels: bilinear
+up-sampling, a weighted sum of maps. FreDSNet's depth branch computes ``conv(sum_i w_i up(m_i))`` with
+``C = 128`` and ``Cout = 1``: projected first, the up-sampling and the sum run on ``K = 9`` channels instead of
+128, the ``128``-channel full-resolution sum never exists, and the convolution with one output channel (which
+oneDNN runs at a few GFLOP/s on the CPU) becomes a ``9 x 128`` matrix product and nine shifted adds.
+:func:`pays` says where that is cheaper: ``Cout * K * 2 <= C``.
+
+The shifted sum follows the convolution's padding: a :class:`~omnidl.nn.padding.CircularConv2d` wraps the
+columns (longitude) and zero-pads the rows, a zero-padded ``nn.Conv2d`` zero-pads both. Results equal the
+convolution up to float rounding (the sums run in another order); gradients flow to the maps and to the
+weight through ``P``.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn as nn
+from torch import Tensor
+
+from .padding import CircularConv2d
+
+#: project first where ``Cout * kh * kw * PROJECTION_RATIO <= in_channels``
+PROJECTION_RATIO = 2
+#: ``False``: :func:`pays` always says no (benchmarks' in-process A/B)
+ENABLED = True
+
+_Offsets = tuple[tuple[int, int], ...]
+
+
+def tap_offsets(conv: nn.Conv2d) -> _Offsets | None:
+    """``(dy, dx)`` of each tap of a stride-1 "same" convolution without groups, in the order of
+    :func:`projection_matrix`'s rows; ``None`` for any other convolution (strided, grouped, not "same", another
+    class such as ``ProjectedConv2d``, a padding mode other than zeros)."""
+    if type(conv) not in (nn.Conv2d, CircularConv2d) or conv.stride != (1, 1) or conv.groups != 1:
+        return None
+    if conv.padding_mode != "zeros":
+        return None
+    pad = conv.wrap_padding if isinstance(conv, CircularConv2d) else conv.padding
+    if isinstance(pad, str):
+        return None
+    (kh, kw), (dh, dw) = conv.kernel_size, conv.dilation
+    if any(2 * p != d * (k - 1) for p, d, k in zip(pad, (dh, dw), (kh, kw))):
+        return None
+    return tuple((a * dh - pad[0], b * dw - pad[1]) for a in range(kh) for b in range(kw))
+
+
+def pays(conv: nn.Module, in_channels: int | None = None) -> bool:
+    """Whether projecting onto ``conv``'s taps is cheaper than convolving a map with ``in_channels`` channels
+    (default the convolution's own): a convolution :func:`tap_offsets` accepts, with
+    ``Cout * kh * kw * PROJECTION_RATIO <= in_channels``."""
+    offsets = tap_offsets(conv) if ENABLED and isinstance(conv, nn.Conv2d) else None
+    if offsets is None:
+        return False
+    c = conv.in_channels if in_channels is None else in_channels
+    return conv.out_channels * len(offsets) * PROJECTION_RATIO <= c
+
+
+def projection_matrix(weight: Tensor) -> Tensor:
+    """``(Cout, C, kh, kw)`` -> ``P (Cout*kh*kw, C)``: row ``o*K + a*kw + b`` is ``weight[o, :, a, b]``."""
+    cout, c, kh, kw = weight.shape
+    return weight.permute(0, 2, 3, 1).reshape(cout * kh * kw, c)
+
+
+def project(conv: nn.Conv2d, m: Tensor) -> Tensor:
+    """``z = P m``: ``m (B, C, h, w)`` -> ``(B, Cout*K, h, w)`` in ``m``'s memory format (a channels-last map is
+    read in place as ``(B, h*w, C)`` rows)."""
+    P = projection_matrix(conv.weight)
+    B, C, h, w = m.shape
+    if m.is_contiguous(memory_format=torch.channels_last) and not m.is_contiguous():
+        return (m.permute(0, 2, 3, 1).reshape(B, h * w, C) @ P.t()).view(B, h, w, -1).permute(0, 3, 1, 2)
+    return torch.matmul(P, m.reshape(B, C, h * w)).view(B, -1, h, w)
+
+
+def shift_sum(conv: nn.Conv2d, z: Tensor) -> Tensor:
+    """``conv``'s output from the projected taps ``z (B, Cout*K, H, W)`` (:func:`project` of its input, or any
+    per-pixel linear map of such projections): ``(B, Cout, H, W)``, bias added."""
+    offsets = tap_offsets(conv)
+    if offsets is None:
+        raise ValueError(f"shift_sum: {conv!r} is not a stride-1 'same' convolution without groups")
+    B, n, H, W = z.shape
+    if n != conv.out_channels * len(offsets):
+        raise ValueError(f"shift_sum: expected {conv.out_channels} x {len(offsets)} projected channels, got {n}")
+    y = _ShiftSum.apply(z.unflatten(1, (conv.out_channels, len(offsets))), offsets,
+                        isinstance(conv, CircularConv2d))
+    return y if conv.bias is None else y + conv.bias.view(1, -1, 1, 1)
+
+
+class _ShiftSum(torch.autograd.Function):
+    """``y[b, o, i, j] = sum_k z[b, o, k, i + dy_k, j + dx_k]``; rows outside are zero, columns wrap (``wrap``)
+    or are zero. ``z (B, Cout, K, H, W)`` -> ``y (B, Cout, H, W)``; the backward scatters ``gy`` the other way."""
+
+    @staticmethod
+    def forward(ctx, z: Tensor, offsets: _Offsets, wrap: bool) -> Tensor:   # type: ignore[override]
+        ctx.offsets, ctx.wrap = offsets, wrap
+        B, O, _, H, W = z.shape
+        y = z.new_zeros(B, O, H, W)
+        for k, dst, src in _segments(offsets, H, W, wrap):
+            y[:, :, dst[0], dst[1]] += z[:, :, k, src[0], src[1]]
+        return y
+
+    @staticmethod
+    def backward(ctx, gy: Tensor) -> tuple[Tensor, None, None]:   # type: ignore[override]
+        B, O, H, W = gy.shape
+        gz = gy.new_zeros(B, O, len(ctx.offsets), H, W)
+        for k, dst, src in _segments(ctx.offsets, H, W, ctx.wrap):
+            gz[:, :, k, src[0], src[1]] += gy[:, :, dst[0], dst[1]]
+        return gz, None, None
+
+
+def _segments(offsets: Sequence[tuple[int, int]], H: int, W: int, wrap: bool):
+    """``(k, (dst rows, dst cols), (src rows, src cols))`` slices: output pixel ``(i, j)`` reads tap ``k`` at
+    ``(i + dy, j + dx)`` (the column modulo ``W`` when ``wrap``); pixels whose source is outside are left out."""
+    for k, (dy, dx) in enumerate(offsets):
+        i0, i1 = max(0, -dy), min(H, H - dy)
+        if i1 <= i0:
+            continue
+        rows = (slice(i0, i1), slice(i0 + dy, i1 + dy))
+        if wrap:
+            s = dx % W
+            cols = [(0, W - s, s), (W - s, W, s - W)] if s else [(0, W, 0)]
+        else:
+            cols = [(max(0, -dx), min(W, W - dx), dx)]
+        for j0, j1, d in cols:
+            if j1 > j0:
+                yield k, (rows[0], slice(j0, j1)), (rows[1], slice(j0 + d, j1 + d))
+
+
+__all__ = ["PROJECTION_RATIO", "tap_offsets", "pays", "projection_matrix", "project", "shift_sum"]
