@@ -20,6 +20,32 @@ def test_pad_panorama_matches_numpy_wrap_and_zero(pw, ph):
     np.testing.assert_array_equal(PanoramaPad2d(pw, ph)(x).numpy(), expect)
 
 
+# (left, right, width, channels-last): the widest wraps take the whole width
+WRAP_CASES = [(1, 1, 5, False), (2, 0, 5, False), (0, 3, 4, False), (4, 4, 4, False), (1, 2, 3, True), (1, 1, 6, True)]
+
+
+@pytest.mark.parametrize("left,right,width,cl", WRAP_CASES)
+def test_pad_panorama_gradient_equals_the_concatenations(left, right, width, cl):
+    """With autograd the wrap has its own backward (one buffer, the strips added where they came from): the same
+    gradient as autograd's backward of the concatenation, in the input's memory format; gradcheck and
+    gradgradcheck."""
+    torch.manual_seed(0)
+    x = torch.randn(2, 3, 4, width, dtype=torch.float64)
+    if cl:
+        x = x.contiguous(memory_format=torch.channels_last)
+    x.requires_grad_()
+    y = pad_panorama(x, (left, right), 1)
+    literal = F.pad(torch.cat([x[..., width - left:], x, x[..., :right]], -1), (0, 0, 1, 1))
+    torch.testing.assert_close(y, literal, rtol=0, atol=0)
+    g = torch.randn_like(y)
+    (got,) = torch.autograd.grad((y * g).sum(), x)
+    (expect,) = torch.autograd.grad((literal * g).sum(), x)
+    torch.testing.assert_close(got, expect, rtol=1e-15, atol=1e-15)
+    assert got.is_contiguous(memory_format=torch.channels_last if cl else torch.contiguous_format)
+    assert torch.autograd.gradcheck(lambda x: pad_panorama(x, (left, right), 1), (x,))
+    assert torch.autograd.gradgradcheck(lambda x: pad_panorama(x, (left, right), 1), (x,))
+
+
 def test_pad_panorama_vertical_replicate():
     x = torch.randn(1, 1, 3, 4)
     y = pad_panorama(x, 1, 1, vertical="replicate")
