@@ -139,7 +139,6 @@ class FusionHead(nn.Module):
         y = blocked_conv(self.out.conv, fused.rows, H, block)
         return self.out.act(self.out.norm(y))
 
-
     def _taps(self, mediator: WConv, d: Tensor) -> Tensor:
         """``project(out.conv, mediator(d))``; in eval mode without autograd by row blocks, so that the wide
         mediator output of a large map never exists at once."""

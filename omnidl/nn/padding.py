@@ -51,7 +51,7 @@ def pad_panorama(x: Tensor, pad_w: int | tuple[int, int], pad_h: int | tuple[int
                                                                   or torch.compiler.is_compiling()):
             x = _WrapColumns.apply(x, left, right)
         else:
-            x = _cat_w(x[..., w - left:] if left else None, x, x[..., :right] if right else None)
+            x = _wrap_columns(x, left, right)
     if top or bottom:
         if vertical == "zeros":
             x = F.pad(x, (0, 0, top, bottom))
@@ -67,19 +67,22 @@ def _cat_w(*parts: Tensor | None) -> Tensor:
     return torch.cat([p for p in parts if p is not None], dim=-1)
 
 
-class _WrapColumns(torch.autograd.Function):
-    """``x (..., W)`` -> ``(..., left + W + right)``: the last ``left`` columns, ``x``, the first ``right`` ones.
+def _wrap_columns(x: Tensor, left: int, right: int) -> Tensor:
+    """``x (..., W)`` -> ``(..., left + W + right)``: the last ``left`` columns, ``x``, the first ``right`` ones."""
+    w = x.shape[-1]
+    return _cat_w(x[..., w - left:] if left else None, x, x[..., :right] if right else None)
 
-    The forward is :func:`_cat_w`'s; the backward writes the gradient of ``x`` once, the middle columns copied and
-    the two wrapped strips added onto the columns they came from. (Autograd's own backward of the concatenation
-    gives each strip a zero-filled buffer of the size of ``x`` and adds the three: on FreDSNet's full-resolution
-    128-channel maps that is two more 16.8 MB buffers and three passes over them.)"""
+
+class _WrapColumns(torch.autograd.Function):
+    """:func:`_wrap_columns` with a backward of its own: the gradient of ``x`` is written once, the middle columns
+    copied and the two wrapped strips added onto the columns they came from. (Autograd's own backward of the
+    concatenation gives each strip a zero-filled buffer of the size of ``x`` and adds the three: on FreDSNet's
+    full-resolution 128-channel maps that is two more 16.8 MB buffers and three passes over them.)"""
 
     @staticmethod
     def forward(ctx, x: Tensor, left: int, right: int) -> Tensor:   # type: ignore[override]
         ctx.left, ctx.right = left, right
-        w = x.shape[-1]
-        return _cat_w(x[..., w - left:] if left else None, x, x[..., :right] if right else None)
+        return _wrap_columns(x, left, right)
 
     @staticmethod
     def backward(ctx, g: Tensor) -> tuple[Tensor, None, None]:   # type: ignore[override]
