@@ -26,6 +26,7 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
+from .fusion import can_block
 from .padding import CircularConv2d
 
 #: project first where ``Cout * kh * kw * PROJECTION_RATIO <= in_channels``
@@ -39,17 +40,11 @@ _Offsets = tuple[tuple[int, int], ...]
 def tap_offsets(conv: nn.Conv2d) -> _Offsets | None:
     """``(dy, dx)`` of each tap of a stride-1 "same" convolution without groups, in the order of
     :func:`projection_matrix`'s rows; ``None`` for any other convolution (strided, grouped, not "same", another
-    class such as ``ProjectedConv2d``, a padding mode other than zeros)."""
-    if type(conv) not in (nn.Conv2d, CircularConv2d) or conv.stride != (1, 1) or conv.groups != 1:
-        return None
-    if conv.padding_mode != "zeros":
+    class such as ``ProjectedConv2d``, a padding mode other than zeros: :func:`omnidl.nn.fusion.can_block`'s rule)."""
+    if not can_block(conv) or conv.groups != 1:
         return None
     pad = conv.wrap_padding if isinstance(conv, CircularConv2d) else conv.padding
-    if isinstance(pad, str):
-        return None
     (kh, kw), (dh, dw) = conv.kernel_size, conv.dilation
-    if any(2 * p != d * (k - 1) for p, d, k in zip(pad, (dh, dw), (kh, kw))):
-        return None
     return tuple((a * dh - pad[0], b * dw - pad[1]) for a in range(kh) for b in range(kw))
 
 
