@@ -28,6 +28,7 @@ from torch import Tensor
 
 from .fusion import can_block
 from .padding import CircularConv2d
+from .sampling import _is_channels_last
 
 #: project first where ``Cout * kh * kw * PROJECTION_RATIO <= in_channels``
 PROJECTION_RATIO = 2
@@ -52,7 +53,7 @@ def pays(conv: nn.Module, in_channels: int | None = None) -> bool:
     """Whether projecting onto ``conv``'s taps is cheaper than convolving a map with ``in_channels`` channels
     (default the convolution's own): a convolution :func:`tap_offsets` accepts, with
     ``Cout * kh * kw * PROJECTION_RATIO <= in_channels``."""
-    offsets = tap_offsets(conv) if ENABLED and isinstance(conv, nn.Conv2d) else None
+    offsets = tap_offsets(conv) if ENABLED else None   # type: ignore[arg-type]
     if offsets is None:
         return False
     c = conv.in_channels if in_channels is None else in_channels
@@ -70,7 +71,7 @@ def project(conv: nn.Conv2d, m: Tensor) -> Tensor:
     read in place as ``(B, h*w, C)`` rows)."""
     P = projection_matrix(conv.weight)
     B, C, h, w = m.shape
-    if m.is_contiguous(memory_format=torch.channels_last) and not m.is_contiguous():
+    if _is_channels_last(m):
         return (m.permute(0, 2, 3, 1).reshape(B, h * w, C) @ P.t()).view(B, h, w, -1).permute(0, 3, 1, 2)
     return torch.matmul(P, m.reshape(B, C, h * w)).view(B, -1, h, w)
 
