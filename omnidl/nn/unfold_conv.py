@@ -9,17 +9,25 @@ page-faults it. Here the product reads the weight where it lies::
     cols = unfold(x)                      (B, C*kh*kw, L)   L = Ho*Wo output positions
     y    = W (Cout, C*kh*kw) @ cols + b   (B, Cout, L) -> (B, Cout, Ho, Wo)
 
-and autograd's own backward of these ops is the direct one (``gW = g @ cols^T``, ``gcols = W^T @ g`` folded back
-into the input, ``gb = sum g``), so second derivatives work too. Measured on 2 threads (forward + backward, one
-image): 1024 channels on 4x8 19 ms against 49 ms for ``F.conv2d``, on 8x16 38 against 66 ms; 512 channels on
-8x16 7 against 7-12 ms; 256 channels on 16x32, where the map is no longer small, 7.5 against 6.0 ms, hence the
-rule of :func:`weight_heavy`.
+with a batch as one product, the images' columns side by side. Its backward is the direct one (``gW = g @
+cols^T`` over all images at once, ``gcols = W^T @ g`` folded back into the input, ``gb = sum g``), differentiable
+again under ``create_graph``. A weight gradient that large is above glibc's largest mmap threshold (32 MB), so
+fresh memory for it is mapped and page-faulted on every backward (13 ms for 37.7 MB on 2 cores, twice the product
+itself): the memory is kept per weight and handed out again once nothing else holds it (:func:`_grad_buffer`).
+Measured on 2 threads (forward + backward, one image): 1024 channels on 4x8 19 ms against 49 ms for ``F.conv2d``,
+on 8x16 38 against 66 ms; 512 channels on 8x16 7 against 7-12 ms; 256 channels on 16x32, where the map is no
+longer small, 7.5 against 6.0 ms, hence the rule of :func:`weight_heavy`. Two images of 1024 channels on 4x8:
+28-30 ms, against 37-48 ms for a broadcast product per image and 70 ms for ``F.conv2d``.
 
 :func:`conv2d` is ``F.conv2d`` with that choice made; :func:`module_conv2d` is ``conv(x)`` with it, for plain
 ``nn.Conv2d`` modules (other classes are called as they are: :class:`~omnidl.nn.padding.CircularConv2d` makes
 the choice itself).
 """
 from __future__ import annotations
+
+import functools
+import threading
+import weakref
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +41,9 @@ from .sampling import _is_channels_last
 WEIGHT_HEAVY_RATIO = 4
 #: ``False`` always calls ``F.conv2d`` (benchmarks' in-process A/B)
 ENABLED = True
+#: ``False``: every weight gradient in fresh memory (benchmarks' in-process A/B of :func:`_grad_buffer`)
+REUSE_GRAD_BUFFERS = True
+_HAS_USE_COUNT = hasattr(torch._C, "_storage_Use_Count")
 
 _Pair = int | tuple[int, int]
 
@@ -63,23 +74,101 @@ def unfold_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride:
     stride, padding, dilation = _pair(stride, "stride"), _pair(padding, "padding"), _pair(dilation, "dilation")
     ho, wo = output_size((H, W), (kh, kw), stride, padding, dilation)
     cols = F.unfold(x, (kh, kw), dilation=dilation, padding=padding, stride=stride)        # (B, C*kh*kw, L)
-    if weight.is_contiguous(memory_format=torch.channels_last) and not weight.is_contiguous():
+    if _rows_channels_last(weight):
         # a channels-last weight is (Cout, kh, kw, C) in memory: a view of it as rows, the columns re-ordered to
         # match (a copy of the small operand, not of the weight)
-        w = weight.permute(0, 2, 3, 1).reshape(cout, -1)
         cols = cols.view(B, C, kh * kw, -1).transpose(1, 2).reshape(B, kh * kw * C, -1)
-    else:
-        w = weight.reshape(cout, -1)
-    if B == 1:      # one matrix product (its backward: two, no reduction over a batch)
-        y = w @ cols[0] if bias is None else torch.addmm(bias.unsqueeze(1), w, cols[0])
-    else:
-        y = torch.matmul(w, cols)
-        if bias is not None:
-            y = y + bias.view(1, cout, 1)
-    y = y.view(B, cout, ho, wo)
+    y = _Product.apply(weight, cols, bias).contiguous().view(B, cout, ho, wo)
     if _is_channels_last(x):                               # as F.conv2d: also for a channel slice of such a map
         y = y.contiguous(memory_format=torch.channels_last)
     return y
+
+
+def _rows_channels_last(weight: Tensor) -> bool:
+    return weight.is_contiguous(memory_format=torch.channels_last) and not weight.is_contiguous()
+
+
+def _rows(weight: Tensor) -> Tensor:
+    """``weight (Cout, C, kh, kw)`` as the matrix ``(Cout, K)`` whose rows lie in memory as the weight's: a view
+    (``K`` runs over ``(C, kh, kw)``, or over ``(kh, kw, C)`` for a channels-last weight)."""
+    if _rows_channels_last(weight):
+        return weight.permute(0, 2, 3, 1).reshape(weight.shape[0], -1)
+    return weight.reshape(weight.shape[0], -1)
+
+
+_buffers: dict[int, tuple[weakref.ref, torch.UntypedStorage]] = {}
+_buffers_lock = threading.Lock()
+
+
+def _forget(key: int, ref: weakref.ref) -> None:
+    """The weight of ``_buffers[key]`` is gone: let its memory go (a dictionary pop, atomic without the lock)."""
+    if _buffers.get(key, (None,))[0] is ref:
+        _buffers.pop(key, None)
+
+
+def _grad_buffer(weight: Tensor) -> Tensor:
+    """An uninitialised tensor with ``weight``'s shape and strides for its gradient, on memory kept per weight.
+
+    A weight-heavy layer's gradient (37.7 MB for FreDSNet's 1024-channel 3x3 convolutions) is above glibc's
+    largest mmap threshold (32 MB), so a fresh one is mapped and page-faulted on every backward (about 13 ms
+    each on 2 cores, twice its matrix product). The memory is kept here and handed out again once nothing
+    else holds it (``optimizer.zero_grad()`` has dropped ``.grad``); while anything does (a kept ``.grad``, a
+    reference held by the user), a new one is made, so no gradient handed out is ever overwritten.
+    """
+    key = id(weight)
+    with _buffers_lock:
+        entry = _buffers.get(key)
+        if entry is not None and entry[0]() is weight and torch._C._storage_Use_Count(entry[1]._cdata) == 1:
+            storage = entry[1]
+        else:
+            storage = torch.empty_strided(weight.shape, weight.stride(), dtype=weight.dtype).untyped_storage()
+            _buffers[key] = (weakref.ref(weight, functools.partial(_forget, key)), storage)
+        return weight.new_empty(0).set_(storage, 0, weight.shape, weight.stride())
+
+
+def _side_by_side(t: Tensor) -> Tensor:
+    """``(B, R, L)`` -> ``(R, B*L)``, the images' columns side by side (a view for ``B = 1``)."""
+    return t[0] if t.shape[0] == 1 else t.transpose(0, 1).reshape(t.shape[1], -1)
+
+
+class _Product(torch.autograd.Function):
+    """``rows(weight) @ cols + bias`` as one matrix product over the batch: ``cols (B, K, L)`` -> ``(B, Cout, L)``
+    (a view; for ``B > 1`` the columns of all images are put side by side, a copy of the small operand).
+
+    The backward is the direct one (``gW = g @ cols^T`` over all images at once, no per-image products summed),
+    differentiable under ``create_graph``; without it, a leaf weight's gradient is written into
+    :func:`_grad_buffer` memory, in the weight's own layout (so autograd keeps it as ``.grad`` without a copy)."""
+
+    @staticmethod
+    def forward(ctx, weight: Tensor, cols: Tensor, bias: Tensor | None) -> Tensor:  # type: ignore[override]
+        B, _, L = cols.shape
+        ctx.save_for_backward(weight, cols)       # inputs, not the side-by-side copy: differentiable again
+        ctx.has_bias = bias is not None
+        w, c = _rows(weight), _side_by_side(cols)
+        y = w @ c if bias is None else torch.addmm(bias.unsqueeze(1), w, c)
+        return y.unsqueeze(0) if B == 1 else y.view(-1, B, L).transpose(0, 1)
+
+    @staticmethod
+    def backward(ctx, gy: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:  # type: ignore[override]
+        weight, cols = ctx.saved_tensors
+        need_w, need_cols, need_b = ctx.needs_input_grad
+        B, cout, L = gy.shape
+        g = _side_by_side(gy)
+        gcols = None
+        if need_cols:
+            gc = _rows(weight).t() @ g                                                   # (K, B*L)
+            gcols = gc.unsqueeze(0) if B == 1 else gc.view(-1, B, L).transpose(0, 1)
+        gw = None
+        if need_w:
+            if torch.is_grad_enabled() or not (REUSE_GRAD_BUFFERS and weight.is_leaf and _HAS_USE_COUNT):
+                gw = g @ _side_by_side(cols).t()           # differentiable (create_graph), shaped as the weight below
+                gw = (gw.view(cout, weight.shape[2], weight.shape[3], weight.shape[1]).permute(0, 3, 1, 2)
+                      if _rows_channels_last(weight) else gw.view(weight.shape))
+            else:
+                gw = _grad_buffer(weight)
+                torch.mm(g, _side_by_side(cols).t(), out=_rows(gw))
+        gb = g.sum(1) if need_b and ctx.has_bias else None
+        return gw, gcols, gb
 
 
 def conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride: _Pair = 1, padding: _Pair | str = 0,

@@ -1,9 +1,11 @@
 """omnidl.nn.unfold_conv: weight-heavy convolutions as one product over the unfolded input.
 
 Outputs and all gradients against ``F.conv2d`` (1e-5 of their scale in float32, 1e-12 in float64, gradcheck
-in float64); the rule's verdict on a table of shapes; the callers (FFC, CircularConv2d) and the cases that must
+in float64); the weight gradient's kept memory (handed out again only once nothing holds it); the rule's verdict on a table of shapes; the callers (FFC, CircularConv2d) and the cases that must
 call ``F.conv2d`` itself."""
 from __future__ import annotations
+
+import gc
 
 import pytest
 import torch
@@ -68,6 +70,69 @@ def test_gradcheck_and_second_derivatives():
     fn = lambda x, w, b: unfold_conv2d(x, w, b, 1, 1, 1)  # noqa: E731
     assert torch.autograd.gradcheck(fn, (x, w, b))
     assert torch.autograd.gradgradcheck(fn, (x, w, b))
+
+
+
+def _weight_grad_ref(x, w, b, g):
+    return torch.autograd.grad(F.conv2d(x, w, b, 1, 1), w, g)[0]
+
+
+@pytest.mark.parametrize("cl", [False, True], ids=["contiguous weight", "channels-last weight"])
+@pytest.mark.parametrize("batch", [1, 2])
+def test_weight_gradient_memory_is_handed_out_again_only_once_released(cl, batch):
+    x, w, b = _operands((batch, 6, 4, 5), (80 * batch, 6, 3, 3), True, cl, torch.float32)
+    g1, g2 = torch.randn(batch, 80 * batch, 4, 5), torch.randn(batch, 80 * batch, 4, 5)
+    unfold_conv2d(x, w, b, 1, 1).backward(g1)
+    first = w.grad
+    assert first.stride() == w.stride()          # the weight's own layout: autograd kept it without a copy
+    _close(first, _weight_grad_ref(x, w, b, g1), 1e-5)
+    kept = first.clone()
+    w.grad = None                                # zero_grad(set_to_none=True), but `first` is still held
+    unfold_conv2d(x, w, b, 1, 1).backward(g2)
+    assert w.grad.data_ptr() != first.data_ptr()
+    torch.testing.assert_close(first, kept, rtol=0, atol=0)
+    _close(w.grad, _weight_grad_ref(x, w, b, g2), 1e-5)
+    ptr = w.grad.data_ptr()
+    del first
+    w.grad = None                                # now nothing holds it: the same memory again
+    unfold_conv2d(x, w, b, 1, 1).backward(g1)
+    assert w.grad.data_ptr() == ptr
+    _close(w.grad, _weight_grad_ref(x, w, b, g1), 1e-5)
+
+
+def test_kept_gradients_accumulate_and_zeroed_ones_restart():
+    x, w, b = _operands((1, 6, 4, 5), (80, 6, 3, 3), True, False, torch.float32)
+    g1, g2 = torch.randn(1, 80, 4, 5), torch.randn(1, 80, 4, 5)
+    unfold_conv2d(x, w, b, 1, 1).backward(g1)
+    unfold_conv2d(x, w, b, 1, 1).backward(g2)
+    _close(w.grad, _weight_grad_ref(x, w, b, g1) + _weight_grad_ref(x, w, b, g2), 1e-5)
+    w.grad.zero_()                               # zero_grad(set_to_none=False)
+    unfold_conv2d(x, w, b, 1, 1).backward(g2)
+    _close(w.grad, _weight_grad_ref(x, w, b, g2), 1e-5)
+
+
+def test_non_leaf_weights_and_the_switch_use_fresh_memory(monkeypatch):
+    x, w, b = _operands((1, 6, 4, 5), (80, 6, 3, 3), True, False, torch.float64)
+    g = torch.randn(1, 80, 4, 5, dtype=torch.float64)
+    scaled = w * 2.0                             # e.g. a re-parametrised weight: its gradient flows on to w
+    unfold_conv2d(x, scaled, b, 1, 1).backward(g)
+    _close(w.grad, 2 * _weight_grad_ref(x, w, b, g), 1e-12)
+    assert id(scaled) not in U._buffers
+    monkeypatch.setattr(U, "REUSE_GRAD_BUFFERS", False)
+    w.grad = None
+    unfold_conv2d(x, w, b, 1, 1).backward(g)
+    _close(w.grad, _weight_grad_ref(x, w, b, g), 1e-12)
+    assert id(w) not in U._buffers
+
+
+def test_the_kept_memory_goes_with_its_weight():
+    x, w, b = _operands((1, 6, 4, 5), (80, 6, 3, 3), True, False, torch.float32)
+    unfold_conv2d(x, w, b, 1, 1).backward(torch.ones(1, 80, 4, 5))
+    key = id(w)
+    assert key in U._buffers
+    del w
+    gc.collect()
+    assert key not in U._buffers
 
 
 # (name, input shape, weight shape, stride, padding, groups, dtype, device, verdict)
