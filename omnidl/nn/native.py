@@ -1,5 +1,5 @@
-"""omnidl's native CPU kernels, built on first use and cached: the fixed-offset convolution (``csrc/fixed_conv.c``)
-and the batch-1 LSTM recurrence (``csrc/lstm.c``), one shared library.
+"""omnidl's native CPU kernels, built on first use and cached: the fixed-offset convolution (``csrc/fixed_conv.c``),
+the batch-1 LSTM recurrence (``csrc/lstm.c``) and PReLU's backward (``csrc/prelu.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -37,7 +37,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 #: every source compiled into the library
-SOURCES = (SOURCE, SOURCE.with_name("lstm.c"))
+SOURCES = (SOURCE, SOURCE.with_name("lstm.c"), SOURCE.with_name("prelu.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -146,6 +146,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_lstm_layer.restype = i
     lib.omnidl_lstm_padded_width.argtypes = [n]
     lib.omnidl_lstm_padded_width.restype = n
+    lib.omnidl_prelu_backward.argtypes = [p, p, p, i, n, n, n, p, p, i]
+    lib.omnidl_prelu_backward.restype = i
     for name in ("omnidl_fc_kernel", "omnidl_fc_openmp"):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = i

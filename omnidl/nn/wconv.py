@@ -18,14 +18,16 @@ from torch import Tensor
 
 from .inference import conv_bn_act, fold_batchnorm, inference_ready
 from .padding import PaddingMode, make_conv2d
+from .prelu import PReLU
 
 Activation = Literal["prelu", "relu", "none"]
 
 
 def make_activation(name: Activation, channels: int) -> nn.Module:
-    """``"prelu"`` (one slope per channel, as FreDSNet), ``"relu"`` or ``"none"`` (identity)."""
+    """``"prelu"`` (one slope per channel, as FreDSNet; :class:`omnidl.nn.prelu.PReLU`, whose backward is one
+    pass), ``"relu"`` or ``"none"`` (identity)."""
     if name == "prelu":
-        return nn.PReLU(channels)
+        return PReLU(channels)
     if name == "relu":
         return nn.ReLU(inplace=False)
     if name in ("none", None):
