@@ -35,7 +35,7 @@ from torch import Tensor
 
 from omnidl.nn.ffc import FourierBlock
 from omnidl.nn import tap_projection
-from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_block
+from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_block, upsample_sum
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
 from omnidl.nn.conv_switch import conv_choice
@@ -125,18 +125,17 @@ class FusionHead(nn.Module):
             # few output channels (depth): project each map onto the output conv's taps first, so that the
             # up-sampling and the sum run on Cout*9 channels (omnidl.nn.tap_projection)
             taps = [self._taps(med, d) for med, d in zip(self.mediators, maps)]
-            y = tap_projection.shift_sum(self.out.conv, UpsampleSum(taps, weights, size=(H, W)).full())
+            y = tap_projection.shift_sum(self.out.conv, upsample_sum(taps, weights, (H, W)))
             return self.out.act(self.out.norm(y))
         blocked = can_block(self.out.conv)          # not for a distortion-aware output conv
-        mediated = [med.row_source(d) if blocked and not self.training and d.shape[-2:] == (H, W) else med(d)
+        if not blocked or torch.is_grad_enabled():
+            # blocks pay off without autograd; with it every full-size buffer is kept anyway, and the backward
+            # of each block's row slices would write full-size gradient buffers: the whole sum at once
+            return self.out(upsample_sum([med(d) for med, d in zip(self.mediators, maps)], weights, (H, W)))
+        mediated = [med.row_source(d) if not self.training and d.shape[-2:] == (H, W) else med(d)
                     for med, d in zip(self.mediators, maps)]
         fused = UpsampleSum(mediated, weights, size=(H, W))      # sum_i w_i up(m_i), by row blocks
-        if not blocked:
-            return self.out(fused.full())
-        # blocks pay off without autograd; with it every full-size buffer is kept anyway, and the backward of
-        # each block's row slices would write full-size gradient buffers: one block then
-        block = rows_per_block(B, self.out.conv.in_channels, W) if not torch.is_grad_enabled() else H
-        y = blocked_conv(self.out.conv, fused.rows, H, block)
+        y = blocked_conv(self.out.conv, fused.rows, H, rows_per_block(B, self.out.conv.in_channels, W))
         return self.out.act(self.out.norm(y))
 
     def _taps(self, mediator: WConv, d: Tensor) -> Tensor:

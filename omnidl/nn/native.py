@@ -1,5 +1,6 @@
 """omnidl's native CPU kernels, built on first use and cached: the fixed-offset convolution (``csrc/fixed_conv.c``),
-the batch-1 LSTM recurrence (``csrc/lstm.c``) and PReLU's backward (``csrc/prelu.c``), one shared library.
+the batch-1 LSTM recurrence (``csrc/lstm.c``), PReLU's backward (``csrc/prelu.c``) and the adjoint of bilinear
+up-sampling (``csrc/upsample.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -37,7 +38,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 #: every source compiled into the library
-SOURCES = (SOURCE, SOURCE.with_name("lstm.c"), SOURCE.with_name("prelu.c"))
+SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -148,6 +149,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_lstm_padded_width.restype = n
     lib.omnidl_prelu_backward.argtypes = [p, p, p, i, n, n, n, p, p, i]
     lib.omnidl_prelu_backward.restype = i
+    lib.omnidl_upsample_adjoint.argtypes = [p, n, n, n, n, n, p, p, p, p, p, p, p, i]
+    lib.omnidl_upsample_adjoint.restype = i
     for name in ("omnidl_fc_kernel", "omnidl_fc_openmp"):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = i
@@ -175,7 +178,8 @@ def library() -> ctypes.CDLL | None:
                 reason = f"{type(e).__name__}: {e}" if not isinstance(e, RuntimeError) else str(e)
         if lib is None and reason != DISABLED:
             warnings.warn(f"omnidl: the native CPU kernels are unavailable ({reason}); ProjectedConv2d runs its "
-                          "slower portable path on CPU and LSTMs PyTorch's own", RuntimeWarning, stacklevel=2)
+                          "slower portable path on CPU, and LSTMs and the backwards of PReLU and of up-sampling are "
+                          "PyTorch's own", RuntimeWarning, stacklevel=2)
         _STATE.update(lib=lib, path=path, reason=reason)
         return lib
 

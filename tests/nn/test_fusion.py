@@ -1,4 +1,5 @@
-"""Row-blocked up-sample sums and convolutions (omnidl.nn.fusion) against the literal F.interpolate + conv."""
+"""Row-blocked up-sample sums and convolutions (omnidl.nn.fusion) against the literal F.interpolate + conv; the
+native adjoint backward of upsample_sum against autograd's of F.interpolate, on a table of cases."""
 import pytest
 import torch
 import torch.nn as nn
@@ -6,6 +7,7 @@ import torch.nn.functional as F
 
 import omnidl.nn.fusion as fusion
 from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, interpolation_matrix, upsample_sum
+from omnidl.nn import native
 from omnidl.nn.padding import CircularConv2d
 
 SIZES = [(2, 4), (4, 8), (8, 16), (16, 32)]
@@ -97,3 +99,83 @@ def test_can_block():
     assert not can_block(nn.Conv2d(2, 2, 3, padding=1, padding_mode="reflect"))
     with pytest.raises(ValueError, match="same"):
         blocked_conv(nn.Conv2d(2, 2, 3, stride=2), lambda a, b: None, 4, 2)
+
+
+def _w(kind, g):
+    return {"none": None, "number": 0.75, "tensor": torch.randn((), generator=g).requires_grad_(),
+            "tensor (1,)": torch.randn(1, generator=g).requires_grad_(),
+            "frozen tensor": torch.randn((), generator=g)}[kind]
+
+
+# (name, map sizes, weight kinds, output size, batch, channels, which maps need a gradient, takes the adjoint)
+ADJOINT = [
+    ("FreDSNet's semantic branch, small", [(2, 4), (4, 8), (8, 16), (16, 32)], ["none", "tensor", "tensor", "tensor"],
+     None, 1, 6, "all", True),
+    ("numbers and (1,) weights, batch 2", [(3, 5), (7, 9), (13, 17)], ["number", "tensor (1,)", "none"], None, 2, 3,
+     "all", True),
+    ("one row, one column, odd factors", [(1, 7), (5, 1), (6, 11)], ["tensor", "tensor", "none"], (11, 23), 1, 4,
+     "all", True),
+    ("only the weights need a gradient", [(4, 8), (8, 16)], ["tensor", "tensor"], None, 1, 3, "none", True),
+    ("one map frozen, one weight frozen", [(4, 8), (8, 16)], ["frozen tensor", "tensor"], None, 1, 3, "first",
+     True),
+    ("float64: autograd's own", [(4, 8), (8, 16)], ["none", "tensor"], None, 1, 3, "all", False),
+    ("channels-last: autograd's own", [(4, 8), (8, 16)], ["none", "tensor"], None, 1, 3, "all", False),
+]
+
+
+@pytest.mark.parametrize("name,sizes,kinds,size,B,C,grad,adjoint", ADJOINT, ids=[a[0] for a in ADJOINT])
+def test_adjoint_backward_equals_autograd_of_interpolate(name, sizes, kinds, size, B, C, grad, adjoint):
+    g = torch.Generator().manual_seed(3)
+    dtype = torch.float64 if "float64" in name else torch.float32
+    ms = [torch.randn(B, C, h, w, generator=g, dtype=dtype) for h, w in sizes]
+    if "channels-last" in name:
+        ms = [m.contiguous(memory_format=torch.channels_last) for m in ms]
+    for i, m in enumerate(ms):
+        m.requires_grad_(grad == "all" or (grad == "first" and i == 0))
+    ws = [_w(k, g) for k in kinds]
+    ws = [w.to(dtype).detach().requires_grad_(w.requires_grad) if isinstance(w, torch.Tensor) else w for w in ws]
+    H, W = size or max(sizes, key=lambda s: s[0] * s[1])
+    y = upsample_sum(ms, ws, (H, W))
+    ref = _literal(ms, ws, (H, W))
+    ran = type(y.grad_fn).__name__ == "_UpsampleSumFunctionBackward"
+    assert ran is (adjoint and native.library() is not None)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(y, ref, rtol=0, atol=tol * ref.abs().max().item())
+    up = torch.randn(ref.shape, generator=g, dtype=dtype)
+    inputs = [t for t in ms + ws if isinstance(t, torch.Tensor) and t.requires_grad]
+    exact = [t.detach().double().requires_grad_() for t in inputs]          # float64 twins for the weights
+    swap = dict(zip(map(id, inputs), exact))
+    ref64 = _literal([swap.get(id(m), m.detach().double()) for m in ms],
+                     [swap.get(id(w), w.detach().double() if isinstance(w, torch.Tensor) else w) for w in ws], (H, W))
+    for t, a, b, b64 in zip(inputs, torch.autograd.grad(y, inputs, up), torch.autograd.grad(ref, inputs, up),
+                            torch.autograd.grad(ref64, exact, up.double())):
+        assert a.shape == b.shape
+        if t.dim() == 4:
+            torch.testing.assert_close(a, b, rtol=0, atol=tol * b.abs().max().item())
+        else:   # a weight's gradient is one long dot product with cancellation: as close to float64 as autograd's
+            assert (a.double() - b64).abs().max() <= max(2 * (b.double() - b64).abs().max(), tol * b64.abs().max())
+
+
+def test_adjoint_backward_is_differentiable_again():
+    """Under create_graph the adjoint is PyTorch's own (differentiable): second derivatives match the literal sum's."""
+    g = torch.Generator().manual_seed(4)
+    ms = [torch.randn(1, 2, h, 2 * h, generator=g).requires_grad_() for h in (2, 4, 8)]
+    w = torch.tensor(0.7, requires_grad=True)
+    up = torch.randn(1, 2, 8, 16, generator=g)
+    outs = []
+    for fn in (lambda: upsample_sum(ms, [None, w, w * 2], (8, 16)), lambda: _literal(ms, [None, w, w * 2], (8, 16))):
+        first = torch.autograd.grad(fn(), ms + [w], up, create_graph=True)
+        outs.append(torch.autograd.grad(sum((t * t).sum() for t in first), ms[1:] + [w]))
+    for a, b in zip(*outs):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-5 * b.abs().max().item())
+
+
+def test_adjoint_switch_and_eval_take_the_row_blocks(monkeypatch):
+    ms = [torch.randn(1, 3, h, 2 * h, requires_grad=True) for h in (4, 8)]
+    assert type(upsample_sum(ms, [None, 0.5]).grad_fn).__name__ != "_UpsampleSumFunctionBackward" \
+        or native.library() is not None
+    monkeypatch.setattr(fusion, "ADJOINT_BACKWARD", False)
+    assert type(upsample_sum(ms, [None, 0.5]).grad_fn).__name__ != "_UpsampleSumFunctionBackward"
+    monkeypatch.setattr(fusion, "ADJOINT_BACKWARD", True)
+    with torch.no_grad():
+        assert upsample_sum(ms, [None, 0.5]).grad_fn is None
