@@ -73,7 +73,9 @@ def project(conv: nn.Conv2d, m: Tensor) -> Tensor:
     B, C, h, w = m.shape
     if _is_channels_last(m):
         return (m.permute(0, 2, 3, 1).reshape(B, h * w, C) @ P.t()).view(B, h, w, -1).permute(0, 3, 1, 2)
-    return torch.matmul(P, m.reshape(B, C, h * w)).view(B, -1, h, w)
+    # bmm, not matmul: matmul folds (Cout*K, C) @ (B, C, h*w) into one product with the map transposed, which
+    # MKL runs 3x slower (depth branch at 256x128: 27-29 against 8.5-10 ms forward + backward)
+    return torch.bmm(P.expand(B, -1, -1), m.reshape(B, C, h * w)).view(B, -1, h, w)
 
 
 def shift_sum(conv: nn.Conv2d, z: Tensor) -> Tensor:
