@@ -22,7 +22,9 @@ too (steadier than wall time on a shared machine). The 1-minute load average is 
   public order without the size check. Target: omnidl <= 0.7x the public model at 1024x512 and 512x256.
 * ``fredsnet``: training step (``train()``, ``zero_grad`` + forward + ``CE(semantic) + L1(depth)`` +
   backward) of ``create_model("fredsnet", backbone="resnet50", width=1)`` vs ``FDS(14, "resnet50")``.
-  Target: omnidl <= 0.6x the public model at 256x128.
+  Target: omnidl <= 0.6x the public model at 256x128. Also printed: each step's FLOP (PyTorch's counter:
+  convolutions and matrix products) against the rate a 2048^3 float32 product reaches in the same run, i.e.
+  how far each step is from running all its arithmetic at the BLAS's speed.
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ import os
 import statistics
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -166,6 +169,28 @@ def _train_step(model: nn.Module, x: torch.Tensor, keys: tuple[str, str]) -> Cal
     return run
 
 
+def _step_flop(step: Callable[[], None]) -> float:
+    """Multiply-adds x 2 of the convolutions and matrix products in one call of ``step`` (PyTorch's counter)."""
+    from torch.utils.flop_counter import FlopCounterMode
+    counter = FlopCounterMode(display=False)
+    with warnings.catch_warnings():          # the counter's module hooks warn that they are not serialisable
+        warnings.simplefilter("ignore")
+        with counter:
+            step()
+    return float(counter.get_total_flops())
+
+
+def _gemm_rate(n: int = 2048, reps: int = 5) -> float:
+    """FLOP/s of the fastest of ``reps`` float32 ``n x n`` matrix products: what the host's BLAS reaches now."""
+    a, b, c = torch.randn(n, n), torch.randn(n, n), torch.empty(n, n)
+    best = float("inf")
+    for _ in range(reps + 1):
+        t = time.perf_counter()
+        torch.mm(a, b, out=c)
+        best = min(best, time.perf_counter() - t)
+    return 2 * n ** 3 / best
+
+
 def bench_fredsnet(mod, sizes: list[tuple[int, int]], reps: int, warmup: int, threads: int) -> list[dict]:
     from omnidl.models import create_model
     with _no_pretrained("resnet50"):
@@ -175,9 +200,21 @@ def bench_fredsnet(mod, sizes: list[tuple[int, int]], reps: int, warmup: int, th
     for h, w in sizes:
         x = torch.rand(1, 3, h, w)
         l0 = load1()
-        times = _time_pair({"public": _train_step(pub, x, ("Semantic", "Depth")),
-                            "omnidl": _train_step(om, x, ("semantic", "depth"))}, reps, warmup)
-        out.append(_report("fredsnet", f"training step {w}x{h}", times, threads, (l0, load1())))
+        jobs = {"public": _train_step(pub, x, ("Semantic", "Depth")),
+                "omnidl": _train_step(om, x, ("semantic", "depth"))}
+        times = _time_pair(jobs, reps, warmup)
+        res = _report("fredsnet", f"training step {w}x{h}", times, threads, (l0, load1()))
+        # where the step stands against the arithmetic: its FLOP at the rate the BLAS reaches now
+        flop = {k: _step_flop(job) for k, job in jobs.items()}
+        rate = _gemm_rate()
+        res.update(flop=flop, gemm_flops=rate)
+        print(f"  FLOP per step: omnidl {flop['omnidl'] / 1e9:.1f} G, public {flop['public'] / 1e9:.1f} G; "
+              f"float32 2048^3 product now {rate / 1e9:.0f} GFLOP/s; omnidl's step runs at "
+              f"{flop['omnidl'] / res['omnidl_s'] / 1e9:.0f} GFLOP/s ({flop['omnidl'] / res['omnidl_s'] / rate:.0%}), "
+              f"the public one at {flop['public'] / res['public_s'] / 1e9:.0f}; all of omnidl's FLOP at that rate "
+              f"would take {flop['omnidl'] / rate:.3f} s = {flop['omnidl'] / rate / res['public_s']:.2f}x public",
+              flush=True)
+        out.append(res)
     return out
 
 
