@@ -1,8 +1,8 @@
 """omnidl.nn.unfold_conv: weight-heavy convolutions as one product over the unfolded input.
 
 Outputs and all gradients against ``F.conv2d`` (1e-5 of their scale in float32, 1e-12 in float64, gradcheck
-in float64); the weight gradient's kept memory (handed out again only once nothing holds it); the rule's verdict on a table of shapes; the callers (FFC, CircularConv2d) and the cases that must
-call ``F.conv2d`` itself."""
+in float64); the weight gradient's kept memory (handed out again only once nothing holds it); the rule's verdict
+on a table of shapes; the callers (FFC, CircularConv2d) and the cases that must call ``F.conv2d`` itself."""
 from __future__ import annotations
 
 import gc
