@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import native
+from .capture import capturing
 from .padding import CircularConv2d, wrapped_conv2d
 
 #: ``f(a, b) -> (B, C, b - a, W)``: rows ``a:b`` of a full-size map, computed on demand
@@ -185,7 +186,7 @@ ADJOINT_BACKWARD = True
 def _adjoint_applies(maps: Sequence, weights: Sequence) -> bool:
     if not (ADJOINT_BACKWARD and torch.is_grad_enabled() and maps and len(maps) == len(weights)):
         return False
-    if not all(isinstance(m, Tensor) for m in maps) or torch.compiler.is_compiling() or torch.jit.is_tracing():
+    if not all(isinstance(m, Tensor) for m in maps) or capturing():
         return False
     B, C = maps[0].shape[:2]
     return (all(m.dim() == 4 and m.shape[:2] == (B, C) and m.dtype == torch.float32 and m.device.type == "cpu"

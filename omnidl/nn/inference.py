@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import fused, native, winograd
+from .capture import capturing
 from .padding import CircularConv2d, border_strip_conv, pad_panorama
 from .projected_conv import ProjectedConv2d
 
@@ -118,7 +119,7 @@ def inference_ready(x: Tensor, *modules: nn.Module | None) -> bool:
     if not (ENABLED and type(x) is torch.Tensor and x.dim() == 4 and not x.is_cuda and x.dtype == torch.float32
             and x.device.type == "cpu" and _MKLDNN and torch.backends.mkldnn.enabled):
         return False
-    if torch.jit.is_tracing() or torch.jit.is_scripting() or torch.compiler.is_compiling():
+    if capturing():
         return False
     grad = torch.is_grad_enabled()
     if grad and x.requires_grad:

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from . import fused, native
+from .capture import capturing
 
 
 def lstm_supported(lstm: nn.Module, x: Tensor) -> bool:
@@ -28,7 +29,7 @@ def lstm_supported(lstm: nn.Module, x: Tensor) -> bool:
     if not (fused.ENABLED and type(x) is torch.Tensor and x.device.type == "cpu" and x.dtype == torch.float32
             and x.dim() == 3 and x.shape[1 if not lstm.batch_first else 0] == 1 and x.shape[-1] == lstm.input_size):
         return False
-    if torch.jit.is_tracing() or torch.jit.is_scripting() or torch.compiler.is_compiling():
+    if capturing():
         return False
     params = lstm._flat_weights
     if any(p.dtype != torch.float32 or p.device.type != "cpu" for p in params):

@@ -21,6 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from .capture import capturing
 from .unfold_conv import conv2d
 
 PaddingMode = Literal["zeros", "circular"]
@@ -47,8 +48,7 @@ def pad_panorama(x: Tensor, pad_w: int | tuple[int, int], pad_h: int | tuple[int
     if left > w or right > w:
         raise ValueError(f"pad_panorama: horizontal padding ({left}, {right}) larger than the width {w}")
     if left or right:
-        if x.requires_grad and torch.is_grad_enabled() and not (torch.jit.is_tracing() or torch.jit.is_scripting()
-                                                                  or torch.compiler.is_compiling()):
+        if x.requires_grad and torch.is_grad_enabled() and not capturing():
             x = _WrapColumns.apply(x, left, right)
         else:
             x = _wrap_columns(x, left, right)

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import native
+from .capture import capturing
 
 #: ``False``: always ``F.prelu`` (benchmarks' in-process A/B)
 ENABLED = True
@@ -35,8 +36,7 @@ def prelu(x: Tensor, weight: Tensor) -> Tensor:
     """``F.prelu(x, weight)``: ``x (B, C, ...)``, ``weight (C,)`` or ``(1,)``; with the one-pass backward where it
     applies (see the module docstring)."""
     if (torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad) and _native_backward(x, weight)
-            and not (torch.jit.is_tracing() or torch.jit.is_scripting() or torch.compiler.is_compiling())
-            and native.library() is not None):
+            and not capturing() and native.library() is not None):
         return _PReLU.apply(x, weight)
     return F.prelu(x, weight)
 

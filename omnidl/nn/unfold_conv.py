@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .capture import capturing
 from .offsets import _pair, output_size
 from .sampling import _is_channels_last
 
@@ -55,7 +56,7 @@ def weight_heavy(x: Tensor, weight: Tensor, stride: _Pair = 1, padding: _Pair | 
     if not (ENABLED and groups == 1 and not isinstance(padding, str) and x.dim() == 4 and weight.dim() == 4
             and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and weight.dtype == x.dtype):
         return False
-    if torch.jit.is_tracing() or torch.jit.is_scripting() or torch.compiler.is_compiling():
+    if capturing():
         return False
     try:
         ho, wo = output_size(tuple(x.shape[-2:]), tuple(weight.shape[-2:]), _pair(stride, "stride"),
