@@ -172,11 +172,17 @@ def _train_step(model: nn.Module, x: torch.Tensor, keys: tuple[str, str]) -> Cal
 def _step_flop(step: Callable[[], None]) -> float:
     """Multiply-adds x 2 of the convolutions and matrix products in one call of ``step`` (PyTorch's counter)."""
     from torch.utils.flop_counter import FlopCounterMode
+
+    from omnidl.nn import unfold_conv
     counter = FlopCounterMode(display=False)
-    with warnings.catch_warnings():          # the counter's module hooks warn that they are not serialisable
-        warnings.simplefilter("ignore")
-        with counter:
-            step()
+    native, unfold_conv.NATIVE_PRODUCTS = unfold_conv.NATIVE_PRODUCTS, False   # the counter sees PyTorch's ops only
+    try:
+        with warnings.catch_warnings():      # the counter's module hooks warn that they are not serialisable
+            warnings.simplefilter("ignore")
+            with counter:
+                step()
+    finally:
+        unfold_conv.NATIVE_PRODUCTS = native
     return float(counter.get_total_flops())
 
 

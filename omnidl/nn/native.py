@@ -137,6 +137,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_fc_packed_floats.restype = n
     lib.omnidl_dense_forward.argtypes = [p, n, i, n, p, p, i, p, p, n, i, i, n, i]
     lib.omnidl_dense_forward.restype = i
+    lib.omnidl_gemm.argtypes = [i, i, i, p, n, n, p, n, n, p, n, i, i]
+    lib.omnidl_gemm.restype = i
     lib.omnidl_wino_packed_floats.argtypes = [i, i]
     lib.omnidl_wino_packed_floats.restype = n
     lib.omnidl_wino_pack.argtypes = [p, i, i, p, i]

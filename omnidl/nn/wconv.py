@@ -19,6 +19,7 @@ from torch import Tensor
 from .inference import conv_bn_act, fold_batchnorm, inference_ready
 from .padding import PaddingMode, make_conv2d
 from .prelu import PReLU
+from .unfold_conv import module_conv2d
 
 Activation = Literal["prelu", "relu", "none"]
 
@@ -54,7 +55,7 @@ class ConvNormAct(nn.Module):
             y = conv_bn_act(x, self.conv, bn, "relu" if relu else None, ready=True)
             return y if relu else self.act(y)
         folded = self._folded_params(x)
-        y = self.norm(self.conv(x)) if folded is None else self.conv._conv_forward(x, *folded)
+        y = self.norm(module_conv2d(self.conv, x)) if folded is None else self.conv._conv_forward(x, *folded)
         if type(self.act) is nn.ReLU:
             return F.relu_(y)          # y is a fresh conv/BN output that no backward needs: no extra buffer
         return self.act(y)

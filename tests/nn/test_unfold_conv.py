@@ -213,3 +213,79 @@ def test_a_channel_slice_of_a_channels_last_map_keeps_the_format():
     y, ref = unfold_conv2d(x, w, None, 1, 1), F.conv2d(x, w, None, 1, 1)
     assert y.is_contiguous(memory_format=CL) == ref.is_contiguous(memory_format=CL) is True
     _close(y, ref, 1e-5)
+
+
+def _native_gemm_counter(monkeypatch):
+    """Counts the calls of the register kernel's product; skips where the build has no such kernel."""
+    from omnidl.nn import native
+    lib = native.library()
+    if lib is None or lib.omnidl_fc_kernel() == 0:
+        pytest.skip("no native register kernel in this build (the products are PyTorch's)")
+    calls = []
+    real = lib.omnidl_gemm
+
+    def counted(*args):
+        calls.append(args[:3])
+        return real(*args)
+    monkeypatch.setattr(lib, "omnidl_gemm", counted)
+    return calls
+
+
+# (name, m, k, n, a transposed, b transposed, out's leading dimension padded, bias, native): the register kernel's
+# product against float64, or PyTorch's exactly where it must not run
+PRODUCTS = [
+    ("forward of 1024 channels on 4x8: one panel, used in place", 1024, 1152, 32, False, False, False, True, True),
+    ("input gradient: a weight's transpose", 1152, 96, 32, True, False, False, False, True),
+    ("weight gradient: columns transposed, packed", 96, 32, 1152, False, True, False, False, True),
+    ("ragged slivers and panels", 37, 301, 45, False, False, False, True, True),
+    ("into rows of a wider matrix", 40, 70, 50, False, True, True, False, True),
+    ("one pass over k, written past the caches (non-temporal)", 1024, 32, 4128, False, True, False, False, True),
+    ("too few rows: PyTorch's", 31, 64, 64, False, False, False, True, False),
+    ("too few columns: PyTorch's", 64, 64, 15, True, False, False, False, False),
+]
+
+
+@pytest.mark.parametrize("name,m,k,n,at,bt,wide,bias,native", PRODUCTS, ids=[p[0] for p in PRODUCTS])
+def test_products_on_the_register_kernel(name, m, k, n, at, bt, wide, bias, native, monkeypatch):
+    calls = _native_gemm_counter(monkeypatch)
+    g = torch.Generator().manual_seed(m + n)
+    a = torch.randn(k, m, generator=g).t() if at else torch.randn(m, k, generator=g)
+    b = torch.randn(n, k, generator=g).t() if bt else torch.randn(k, n, generator=g)
+    c = torch.randn(m, n + 7, generator=g)[:, 3:3 + n] if wide else None
+    bb = torch.randn(m, generator=g) if bias else None
+    with torch.no_grad():                                  # as in autograd's forward and backward
+        y = U._product(a, b, out=c, bias=bb)
+    assert len(calls) == int(native)
+    if c is not None:
+        assert y.data_ptr() == c.data_ptr()
+    ref = a.double() @ b.double() + (bb.double().unsqueeze(1) if bias else 0)
+    if native:
+        _close(y.double(), ref, 1e-6)
+    else:
+        torch.testing.assert_close(y, a @ b + (bb.unsqueeze(1) if bias else 0), rtol=0, atol=0)
+
+
+def test_products_under_create_graph_and_the_switch_are_pytorchs(monkeypatch):
+    calls = _native_gemm_counter(monkeypatch)
+    a, b = torch.randn(64, 64), torch.randn(64, 32)
+    with torch.enable_grad():
+            U._product(a, b)                               # builds a graph: must stay differentiable
+    with torch.no_grad():
+        U._product(a.double(), b.double())
+        monkeypatch.setattr(U, "NATIVE_PRODUCTS", False)
+        U._product(a, b)
+    assert calls == []
+
+
+def test_weight_heavy_layer_runs_every_product_on_the_register_kernel(monkeypatch):
+    calls = _native_gemm_counter(monkeypatch)
+    x, w, b = _operands((1, 64, 4, 8), (512, 64, 3, 3), True, False, torch.float32)
+    y = unfold_conv2d(x, w, b, 1, 1)
+    y.backward(torch.ones_like(y))
+    assert len(calls) == 3                                 # forward, input gradient, weight gradient
+    xr, wr, br = (t.detach().clone().requires_grad_() for t in (x, w, b))
+    ref = F.conv2d(xr, wr, br, 1, 1)
+    ref.backward(torch.ones_like(ref))
+    _close(y, ref, 1e-5)
+    for got, want in ((x.grad, xr.grad), (w.grad, wr.grad), (b.grad, br.grad)):
+        _close(got, want, 1e-5)
