@@ -89,7 +89,7 @@ class FourierUnit(nn.Module):
             z = torch.cat([spec.real, spec.imag], dim=-1)                  # (B, C, H, 2Wf)
         else:
             z = torch.stack([spec.real, spec.imag], dim=2).reshape(b, 2 * c, h, wf)
-        z = self.act(self.norm(self.conv(z))).to(xf.dtype)
+        z = self.act(self.norm(module_conv2d(self.conv, z))).to(xf.dtype)
         if self.spectrum_layout == "width":
             spec = torch.complex(z[..., :wf], z[..., wf:])
         else:
@@ -122,8 +122,9 @@ class SpectralTransform(nn.Module):
         self.conv_out = nn.Conv2d(hidden, out_channels, 1, bias=bias)
 
     def forward(self, x: Tensor) -> Tensor:
-        x = self.conv_in(self.downsample(x))
-        return self.conv_out(x + self.fourier(x))
+        conv, norm, act = self.conv_in
+        x = act(norm(module_conv2d(conv, self.downsample(x))))
+        return module_conv2d(self.conv_out, x + self.fourier(x))
 
 
 def split_channels(channels: int, ratio_global: float) -> tuple[int, int]:
