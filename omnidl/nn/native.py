@@ -1,6 +1,7 @@
 """omnidl's native CPU kernels, built on first use and cached: the fixed-offset convolution (``csrc/fixed_conv.c``),
-the batch-1 LSTM recurrence (``csrc/lstm.c``), PReLU's backward (``csrc/prelu.c``) and the adjoint of bilinear
-up-sampling (``csrc/upsample.c``), one shared library.
+the batch-1 LSTM recurrence (``csrc/lstm.c``), PReLU's backward (``csrc/prelu.c``), the adjoint of bilinear
+up-sampling (``csrc/upsample.c``) and the thin 1x1 expansion with batch norm (``csrc/expansion.c``), one shared
+library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -38,7 +39,8 @@ import torch
 
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 #: every source compiled into the library
-SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c"))
+SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c",
+                                                                 "expansion.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -153,6 +155,12 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_prelu_backward.restype = i
     lib.omnidl_upsample_adjoint.argtypes = [p, n, n, n, n, n, p, p, p, p, p, p, p, i]
     lib.omnidl_upsample_adjoint.restype = i
+    lib.omnidl_expand_forward.argtypes = [p, n, i, n, p, p, i, i, p, i, p, i]
+    lib.omnidl_expand_forward.restype = i
+    lib.omnidl_expand_sums.argtypes = [p, p, n, i, n, p, p, i, i, p, i, p, i]
+    lib.omnidl_expand_sums.restype = i
+    lib.omnidl_expand_input_grad.argtypes = [p, p, n, i, n, p, p, i, i, p, i, p, p, p, p, i]
+    lib.omnidl_expand_input_grad.restype = i
     for name in ("omnidl_fc_kernel", "omnidl_fc_openmp"):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = i
@@ -180,8 +188,9 @@ def library() -> ctypes.CDLL | None:
                 reason = f"{type(e).__name__}: {e}" if not isinstance(e, RuntimeError) else str(e)
         if lib is None and reason != DISABLED:
             warnings.warn(f"omnidl: the native CPU kernels are unavailable ({reason}); ProjectedConv2d runs its "
-                          "slower portable path on CPU, and LSTMs and the backwards of PReLU and of up-sampling are "
-                          "PyTorch's own", RuntimeWarning, stacklevel=2)
+                          "slower portable path on CPU; LSTMs, the products of weight-heavy convolutions, thin 1x1 "
+                          "expansions with batch norm and the backwards of PReLU and of up-sampling run on PyTorch's "
+                          "own ops", RuntimeWarning, stacklevel=2)
         _STATE.update(lib=lib, path=path, reason=reason)
         return lib
 

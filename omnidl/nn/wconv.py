@@ -16,6 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import expansion
 from .inference import conv_bn_act, fold_batchnorm, inference_ready
 from .padding import PaddingMode, make_conv2d
 from .prelu import PReLU
@@ -54,6 +55,8 @@ class ConvNormAct(nn.Module):
             relu = type(self.act) is nn.ReLU
             y = conv_bn_act(x, self.conv, bn, "relu" if relu else None, ready=True)
             return y if relu else self.act(y)
+        if expansion.applies(x, self.conv, self.norm, self.act):   # a thin 1x1 expansion in training: fused
+            return expansion.expansion(x, self.conv, self.norm, self.act)
         folded = self._folded_params(x)
         y = self.norm(module_conv2d(self.conv, x)) if folded is None else self.conv._conv_forward(x, *folded)
         if type(self.act) is nn.ReLU:
