@@ -101,8 +101,8 @@ def _update_running(bn: nn.BatchNorm2d, mean: Tensor, var: Tensor, n: int) -> No
 
 def _folded(weight: Tensor, bias: Tensor | None, gamma: Tensor | None, beta: Tensor | None, mean: Tensor,
             var: Tensor, eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """float64 ``(w (Cout, Cin), invstd, k = gamma * invstd, b_folded)`` and the folded float32 weights are
-    ``k w`` and ``b_folded``."""
+    """float64 ``(w (Cout, Cin), invstd, k = gamma * invstd, b')``: batch norm folded into the convolution is
+    ``(k w) x + b'``."""
     w = weight.detach().reshape(weight.shape[0], -1).double()
     invstd = (var + eps).rsqrt()
     k = invstd * (gamma.detach().double() if gamma is not None else 1.0)

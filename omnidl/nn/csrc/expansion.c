@@ -40,6 +40,13 @@ static inline __attribute__((always_inline)) float grad_of(int act, float pre, f
     return act == 0 ? g : act == 1 ? (pre <= 0.f ? 0.f : g) : (pre > 0.f ? g : sg);
 }
 
+/* work item `it` of B * chunks: its image *b and first pixel *p0; returns its number of pixels */
+static int chunk_of(int64_t it, int64_t chunks, int64_t P, int64_t *b, int64_t *p0) {
+    *b = it / chunks;
+    *p0 = (it % chunks) * CHUNK;
+    return P - *p0 < CHUNK ? (int)(P - *p0) : CHUNK;
+}
+
 static float slope_of(const float *slope, int per_channel, int c) { return slope ? slope[per_channel ? c : 0] : 0.f; }
 
 int omnidl_expand_forward(const float *x, int64_t B, int cin, int64_t P, const float *w, const float *bias, int cout,
@@ -49,8 +56,8 @@ int omnidl_expand_forward(const float *x, int64_t B, int cin, int64_t P, const f
     (void)nthreads;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
     for (int64_t it = 0; it < items; ++it) {
-        const int64_t b = it / chunks, p0 = (it % chunks) * CHUNK;
-        const int n = P - p0 < CHUNK ? (int)(P - p0) : CHUNK;
+        int64_t b, p0;
+        const int n = chunk_of(it, chunks, P, &b, &p0);
         const float *xb = x + b * cin * P + p0;
         float pre[CHUNK];
         for (int c = 0; c < cout; ++c) {
@@ -132,8 +139,8 @@ int omnidl_expand_sums(const float *x, const float *g, int64_t B, int cin, int64
 #pragma omp for schedule(static)
         for (int64_t it = 0; it < items; ++it) {
             if (!mine) continue;
-            const int64_t b = it / chunks, p0 = (it % chunks) * CHUNK;
-            const int n = P - p0 < CHUNK ? (int)(P - p0) : CHUNK;
+            int64_t b, p0;
+            const int n = chunk_of(it, chunks, P, &b, &p0);
             const float *restrict xb = x + b * cin * P + p0;
             float e[CHUNK];
             for (int c = 0; c < cout; ++c) {
@@ -166,8 +173,8 @@ int omnidl_expand_input_grad(const float *x, const float *g, int64_t B, int cin,
     (void)nthreads;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
     for (int64_t it = 0; it < items; ++it) {
-        const int64_t b = it / chunks, p0 = (it % chunks) * CHUNK;
-        const int n = P - p0 < CHUNK ? (int)(P - p0) : CHUNK;
+        int64_t b, p0;
+        const int n = chunk_of(it, chunks, P, &b, &p0);
         const float *xb = x + b * cin * P + p0;
         float acc[MAX_IN][CHUNK], e[CHUNK];
         for (int k = 0; k < cin; ++k) pre_chunk(xb, P, cin, m + k * cin, q[k], n, acc[k]);
