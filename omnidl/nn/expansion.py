@@ -61,10 +61,11 @@ def applies(x: Tensor, conv: nn.Module, bn: nn.Module, act: nn.Module) -> bool:
     return not capturing() and native.library() is not None
 
 
-def expansion(x: Tensor, conv: nn.Conv2d, bn: nn.BatchNorm2d, act: nn.Module) -> Tensor:
+def expansion(x: Tensor, conv: nn.Conv2d, bn: nn.BatchNorm2d, act: nn.Module, ready: bool = False) -> Tensor:
     """``act(bn(conv(x)))`` for ``x (B, Cin, H, W)`` -> ``(B, Cout, H, W)``, where :func:`applies` (else the
-    modules themselves); updates ``bn``'s running statistics as its own forward does."""
-    if not applies(x, conv, bn, act):
+    modules themselves); updates ``bn``'s running statistics as its own forward does. ``ready``: the caller has
+    just found :func:`applies` true for these arguments."""
+    if not (ready or applies(x, conv, bn, act)):
         return act(bn(conv(x)))
     code = _act_code(act)
     slope = act.weight if code == 2 else None

@@ -56,7 +56,7 @@ class ConvNormAct(nn.Module):
             y = conv_bn_act(x, self.conv, bn, "relu" if relu else None, ready=True)
             return y if relu else self.act(y)
         if expansion.applies(x, self.conv, self.norm, self.act):   # a thin 1x1 expansion in training: fused
-            return expansion.expansion(x, self.conv, self.norm, self.act)
+            return expansion.expansion(x, self.conv, self.norm, self.act, ready=True)
         folded = self._folded_params(x)
         y = self.norm(module_conv2d(self.conv, x)) if folded is None else self.conv._conv_forward(x, *folded)
         if type(self.act) is nn.ReLU:
