@@ -1,13 +1,28 @@
 #!/usr/bin/env bash
 # Every benchmark once, quick settings (each about a minute on a quiet 2-core machine), with the load
 # average before each. Figures are only comparable when the load stays below the benchmark's threads (2):
-# every script flags its figures otherwise. Usage: bash benchmarks/run_all.sh [OUT_DIR]
+# every script flags its figures otherwise. Before each benchmark the script waits until the 1-minute load
+# average has fallen below SETTLE_LOAD (default 1.0), at most SETTLE_MAX seconds (default 90): run back to
+# back, each benchmark would start with the load its predecessor's own threads left in that average.
+# Usage: bash benchmarks/run_all.sh [OUT_DIR]
 set -u
 cd "$(dirname "$0")/.."
 out="${1:-benchmarks/results/run_all}"
 mkdir -p "$out"
+settle() {
+  local waited=0 load
+  while [ "$waited" -lt "${SETTLE_MAX:-90}" ]; do
+    load=$(cut -d' ' -f1 /proc/loadavg 2>/dev/null) || return 0
+    awk -v l="$load" -v t="${SETTLE_LOAD:-1.0}" 'BEGIN { exit !(l < t) }' && break
+    sleep 5
+    waited=$((waited + 5))
+  done
+  [ "$waited" -gt 0 ] && echo "(waited ${waited} s for the load to settle)"
+  return 0
+}
 run() {
   local name="$1"; shift
+  settle
   echo "=== $name: $* ($(date -u +%H:%M:%S) UTC, $(cut -d' ' -f1-4 /proc/loadavg 2>/dev/null || uptime))"
   "$@" 2>&1 | tee "$out/$name.txt"
 }
