@@ -173,16 +173,21 @@ def _step_flop(step: Callable[[], None]) -> float:
     """Multiply-adds x 2 of the convolutions and matrix products in one call of ``step`` (PyTorch's counter)."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    from omnidl.nn import unfold_conv
+    from omnidl.nn import expansion, unfold_conv
     counter = FlopCounterMode(display=False)
-    native, unfold_conv.NATIVE_PRODUCTS = unfold_conv.NATIVE_PRODUCTS, False   # the counter sees PyTorch's ops only
+    # the counter sees PyTorch's ops only: the native paths that replace convolutions or products are switched off
+    switches = [(unfold_conv, "NATIVE_PRODUCTS"), (expansion, "ENABLED")]
+    kept = [getattr(mod, name) for mod, name in switches]
+    for mod, name in switches:
+        setattr(mod, name, False)
     try:
         with warnings.catch_warnings():      # the counter's module hooks warn that they are not serialisable
             warnings.simplefilter("ignore")
             with counter:
                 step()
     finally:
-        unfold_conv.NATIVE_PRODUCTS = native
+        for (mod, name), value in zip(switches, kept):
+            setattr(mod, name, value)
     return float(counter.get_total_flops())
 
 
