@@ -141,21 +141,67 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
  * Per chunk of KC_BLOCK k-values: when the chunk of b is small enough to stay in L2 (B_RESIDENT bytes), each
  * MR-row sliver of a is loaded once and run against every panel (rows outer); otherwise each panel's chunk stays
  * in L1 while every sliver of a runs against it (panels outer). */
+#ifndef B_RESIDENT
 #define B_RESIDENT (192 * 1024)
+#endif
+/* one chunk of kb k-values of gemm_packed: MR-row sliver s of a starts at a + s * ss, element (i, p) of it at
+ * [i * rs + p * cs]; panel q of b (this chunk's kb rows) at bp + q * ps */
+static void gemm_chunk(int m, int n, int kb, const float *a, int64_t ss, int64_t rs, int64_t cs, const float *bp,
+                       int64_t ps, float *c, int64_t ldc, int accumulate) {
+    const int panels = (n + NR - 1) / NR, slivers = (m + MR - 1) / MR;
+    const int rows_outer = (int64_t)kb * panels * NR * (int64_t)sizeof(float) <= B_RESIDENT;
+    for (int outer = 0; outer < (rows_outer ? slivers : panels); ++outer) {
+        for (int inner = 0; inner < (rows_outer ? panels : slivers); ++inner) {
+            const int s = rows_outer ? outer : inner, q = rows_outer ? inner : outer;
+            const int i = s * MR, nr = n - q * NR < NR ? n - q * NR : NR;
+            kernel_tile(kb, a + s * ss, rs, cs, bp + q * ps, c + i * ldc + q * NR, ldc, accumulate,
+                        m - i < MR ? m - i : MR, nr);
+        }
+    }
+}
+
 static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t cs, const float *bp, float *c,
                         int64_t ldc, int accumulate) {
-    const int panels = (n + NR - 1) / NR;
     for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
         const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
-        const int acc = p0 > 0 ? 1 : accumulate;
-        const int rows_outer = (int64_t)kb * panels * NR * (int64_t)sizeof(float) <= B_RESIDENT;
-        for (int outer = 0; outer < (rows_outer ? m : panels); outer += (rows_outer ? MR : 1)) {
-            for (int inner = 0; inner < (rows_outer ? panels : m); inner += (rows_outer ? 1 : MR)) {
-                const int i = rows_outer ? outer : inner, q = rows_outer ? inner : outer;
-                const int nr = n - q * NR < NR ? n - q * NR : NR;
-                kernel_tile(kb, a + i * rs + p0 * cs, rs, cs, bp + (int64_t)q * k * NR + (int64_t)p0 * NR,
-                            c + i * ldc + q * NR, ldc, acc, m - i < MR ? m - i : MR, nr);
+        gemm_chunk(m, n, kb, a + p0 * cs, MR * rs, rs, cs, bp + (int64_t)p0 * NR, (int64_t)k * NR, c, ldc,
+                   p0 > 0 ? 1 : accumulate);
+    }
+}
+
+/* gemm_packed for an `a` whose rows lie side by side (a[i + p * cs], large cs: a transposed weight, one weight row
+ * per k-step). Read where it lies, each MR-row sliver would take a short piece of every weight row: a stride the
+ * hardware prefetchers do not follow, and the rows of a weight whose length is a multiple of 1024 floats all fall
+ * in one L1 set (1024 -> 1024 channels, 3x3: W^T g took 16-17 ms against 5 ms for the forward W x on one host).
+ * So each block of A_BLOCK slivers x KC_BLOCK k-values is first copied, the weight's rows read in order and
+ * PACK_AHEAD rows ahead prefetched, into `ap` (A_BLOCK * MR * KC_BLOCK floats: sliver by sliver, MR values per
+ * k-step, contiguous) and run from there in gemm_packed's order. (-D overrides: A/B builds of the benchmarks;
+ * A_BLOCK 0 reads a where it lies.) */
+#ifndef PACK_AHEAD
+#define PACK_AHEAD 8
+#endif
+#ifndef A_BLOCK
+#define A_BLOCK 16
+#endif
+static void gemm_packed_rows(int m, int n, int k, const float *a, int64_t cs, const float *bp, float *c, int64_t ldc,
+                             int accumulate, float *ap) {
+    for (int i0 = 0; i0 < m; i0 += A_BLOCK * MR) {
+        const int rows = m - i0 < A_BLOCK * MR ? m - i0 : A_BLOCK * MR, slivers = (rows + MR - 1) / MR;
+        for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
+            const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
+            for (int p = 0; p < kb; ++p) {
+                const float *src = a + i0 + (int64_t)(p0 + p) * cs;
+                for (int s = 0; s < slivers; ++s) {
+                    _mm_prefetch((const char *)(src + PACK_AHEAD * cs + s * MR), _MM_HINT_T0);
+                    float *d = ap + ((int64_t)s * kb + p) * MR;
+                    if (rows - s * MR >= MR)
+                        memcpy(d, src + s * MR, MR * sizeof(float));
+                    else
+                        memcpy(d, src + s * MR, (size_t)(rows - s * MR) * sizeof(float));
+                }
             }
+            gemm_chunk(rows, n, kb, ap, (int64_t)kb * MR, 1, MR, bp + (int64_t)p0 * NR, (int64_t)k * NR,
+                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate);
         }
     }
 }
@@ -612,13 +658,16 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
  * c (m, n) (+)= a (m, k) b (k, n), with a[i * ars + p * acs] read where it lies (a weight, or its transpose) and
  * b[p * brs + j * bcs] packed once into NR-column panels shared by the threads (used as it is when it already is
  * one panel: n == NR, brs == NR, bcs == 1); c row-major with leading dimension ldc, added to when `accumulate`.
- * The threads split the rows of c in MR-row slivers, so each streams only its part of a. A large c written in one
- * pass over k (at least STREAMING bytes, k <= KC_BLOCK: a weight-heavy layer's weight gradient) goes straight to
- * memory with non-temporal stores: it does not fit the caches anyway, and ordinary stores would first read every
- * line of it (37.7 MB for 1024 -> 1024 channels, 3x3: 3.5-3.7 against 6.3-6.6 ms on 2 threads). Returns 0, 1 when
- * the panel buffer cannot be allocated, 2 without this file's register kernel (the caller keeps its BLAS
- * product). */
-#define STREAMING (16 << 20)
+ * The threads split the rows of c in MR-row slivers, so each streams only its part of a; an a whose rows lie side
+ * by side (ars == 1: a transposed weight) is copied block by block first (gemm_packed_rows). A c of at least
+ * STREAMING bytes written in one pass over k (k <= KC_BLOCK: a weight-heavy layer's weight gradient) goes straight
+ * to memory with non-temporal stores: the step does not read it again before the optimiser, and ordinary stores
+ * would first read every line of it (37.7 MB for 1024 -> 1024 channels, 3x3: 3.5-3.7 against 6.3-6.6 ms on 2
+ * threads; 9.4 MB for 512 -> 512: 1.3 against 2.2 ms). Returns 0, 1 when a buffer cannot be allocated, 2 without
+ * this file's register kernel (the caller keeps its BLAS product). */
+#ifndef STREAMING
+#define STREAMING (2 << 20)
+#endif
 int omnidl_gemm(int m, int n, int k, const float *a, int64_t ars, int64_t acs, const float *b, int64_t brs,
                 int64_t bcs, float *c, int64_t ldc, int accumulate, int nthreads) {
 #if HAVE_KERNEL
@@ -627,6 +676,13 @@ int omnidl_gemm(int m, int n, int k, const float *a, int64_t ars, int64_t acs, c
     if (!direct && !bp) return 1;
     const int panels = (n + NR - 1) / NR, slivers = (m + MR - 1) / MR;
     const int mode = accumulate ? 1 : k <= KC_BLOCK && (int64_t)m * n * (int64_t)sizeof(float) >= STREAMING ? 2 : 0;
+    const int64_t a_floats = (int64_t)A_BLOCK * MR * KC_BLOCK;
+    const int side_by_side = A_BLOCK > 0 && ars == 1 && acs > 1;
+    float *ap = side_by_side ? (float *)malloc(sizeof(float) * (size_t)(a_floats * nthreads)) : NULL;
+    if (side_by_side && !ap) {
+        free(bp);
+        return 1;
+    }
 #pragma omp parallel num_threads(nthreads)
     {
         if (!direct) {
@@ -639,10 +695,13 @@ int omnidl_gemm(int m, int n, int k, const float *a, int64_t ars, int64_t acs, c
         int t, nt;
         team(&t, &nt);
         const int i0 = MR * (int)span_edge(slivers, t, nt), i1 = (int)min64(m, MR * span_edge(slivers, t + 1, nt));
-        if (i1 > i0)
+        if (i1 > i0 && ap)
+            gemm_packed_rows(i1 - i0, n, k, a + i0, acs, direct ? b : bp, c + i0 * ldc, ldc, mode, ap + t * a_floats);
+        else if (i1 > i0)
             gemm_packed(i1 - i0, n, k, a + i0 * ars, ars, acs, direct ? b : bp, c + i0 * ldc, ldc, mode);
     }
     _mm_sfence();  /* the non-temporal stores are visible to every thread before the caller reads c */
+    free(ap);
     free(bp);
     return 0;
 #else
