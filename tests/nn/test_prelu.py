@@ -27,6 +27,8 @@ def _close(a, b, tol):
 CASES = [
     ("a plane longer than one block, with a tail", (2, 3, 37, 41), 3, torch.float32, False, True),
     ("a plane shorter than one block", (1, 5, 3, 4), 5, torch.float32, False, True),
+    ("whole lanes shorter than one block, with a tail", (1, 4, 7, 73), 4, torch.float32, False, True),
+    ("a deep layer's 16x32 planes: whole lanes", (2, 6, 16, 32), 6, torch.float32, False, True),
     ("one slope for all channels", (2, 4, 9, 30), 1, torch.float32, False, True),
     ("3-d input (B, C, N)", (3, 6, 100), 6, torch.float32, False, True),
     ("one channel", (2, 1, 33, 33), 1, torch.float32, False, True),

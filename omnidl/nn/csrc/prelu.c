@@ -4,8 +4,10 @@
  *     ga[b, c]    = sum_i x g  over the i where x <= 0          (the caller sums over b, and over c for one slope)
  *
  * These are PyTorch's formulas (at x = 0 the slope's side, which adds nothing to ga). One pass reads x and g and
- * writes gx; the sums are kept per plane in float lanes over blocks of BLOCK elements and added up in double, so
- * their rounding stays far below float32's over a whole plane. The planes are split across the OpenMP threads.
+ * writes gx; the sums are kept per plane in float lanes over blocks of at most BLOCK elements and added up in
+ * double, so their rounding stays far below float32's over a whole plane. Planes shorter than a block (a deep
+ * layer's 16x32 or 8x16 map) run in whole lanes too: element by element, with a double sum, a 256 x 16 x 32 map
+ * took 0.62 ms against 0.03 ms. The planes are split across the OpenMP threads.
  */
 #include <stdint.h>
 #ifdef _OPENMP
@@ -18,17 +20,20 @@
 static double plane(const float *restrict x, const float *restrict g, float *restrict gx, float s, int64_t n) {
     double total = 0.0;
     int64_t i = 0;
-    for (; i + BLOCK <= n; i += BLOCK) {
+    while (i + LANES <= n) {  /* whole lanes, in blocks of at most BLOCK */
+        const int64_t end = i + BLOCK <= n ? i + BLOCK : i + (n - i) / LANES * LANES;
         float acc[LANES] = {0};
-        for (int64_t j = i; j < i + BLOCK; j += LANES)
+        for (int64_t j = i; j < end; j += LANES)
             for (int l = 0; l < LANES; ++l) {
-                const float xv = x[j + l], gv = g[j + l];
+                /* both sides computed either way: GCC does not vectorise a conditional float product */
+                const float xv = x[j + l], gv = g[j + l], sg = s * gv, xg = xv * gv;
                 const int pos = xv > 0.f;
-                gx[j + l] = pos ? gv : s * gv;
-                acc[l] += pos ? 0.f : xv * gv;
+                gx[j + l] = pos ? gv : sg;
+                acc[l] += pos ? 0.f : xg;
             }
         for (int l = 0; l < LANES; ++l)
             total += acc[l];
+        i = end;
     }
     for (; i < n; ++i) {
         const float xv = x[i], gv = g[i];
