@@ -1,7 +1,7 @@
 """omnidl's native CPU kernels, built on first use and cached: the fixed-offset convolution (``csrc/fixed_conv.c``),
 the batch-1 LSTM recurrence (``csrc/lstm.c``), PReLU's backward (``csrc/prelu.c``), the adjoint of bilinear
-up-sampling (``csrc/upsample.c``) and the thin 1x1 expansion with batch norm (``csrc/expansion.c``), one shared
-library.
+up-sampling (``csrc/upsample.c``), the thin 1x1 expansion with batch norm (``csrc/expansion.c``) and a panorama's
+wrap into channels-last memory and back (``csrc/wrap_layout.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -40,7 +40,7 @@ import torch
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 #: every source compiled into the library
 SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c",
-                                                                 "expansion.c"))
+                                                                 "expansion.c", "wrap_layout.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -161,6 +161,9 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_expand_sums.restype = i
     lib.omnidl_expand_input_grad.argtypes = [p, p, n, i, n, p, p, i, i, p, i, p, p, p, p, i]
     lib.omnidl_expand_input_grad.restype = i
+    for name in ("omnidl_wrap_to_nhwc", "omnidl_wrap_from_nhwc"):
+        getattr(lib, name).argtypes = [p, n, n, n, n, n, n, p, i]
+        getattr(lib, name).restype = i
     for name in ("omnidl_fc_kernel", "omnidl_fc_openmp"):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = i
@@ -189,8 +192,8 @@ def library() -> ctypes.CDLL | None:
         if lib is None and reason != DISABLED:
             warnings.warn(f"omnidl: the native CPU kernels are unavailable ({reason}); ProjectedConv2d runs its "
                           "slower portable path on CPU; LSTMs, the products of weight-heavy convolutions, thin 1x1 "
-                          "expansions with batch norm and the backwards of PReLU and of up-sampling run on PyTorch's "
-                          "own ops", RuntimeWarning, stacklevel=2)
+                          "expansions with batch norm, the backwards of PReLU and of up-sampling and the wrap of "
+                          "task heads run on PyTorch's own ops", RuntimeWarning, stacklevel=2)
         _STATE.update(lib=lib, path=path, reason=reason)
         return lib
 

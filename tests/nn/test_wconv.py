@@ -163,3 +163,93 @@ def test_wconv_row_source_gives_the_rows_of_forward():
     torch.testing.assert_close(rows(2, 5), w(x)[:, :, 2:5])
     with pytest.raises(RuntimeError, match="eval"):
         w.train().row_source(x)
+
+
+# ---- a task head's wrap straight into channels-last memory (padding._WrapColumnsChannelsLast) ------------------
+
+from omnidl.nn import native, padding  # noqa: E402
+
+
+@pytest.mark.parametrize("B,C,H,W,left,right", [(2, 19, 3, 37, 2, 1), (1, 16, 2, 16, 1, 1), (1, 5, 4, 9, 0, 3),
+                                                (1, 3, 2, 6, 6, 6)])
+def test_wrap_layout_kernels_equal_the_wrap_and_its_adjoint(B, C, H, W, left, right):
+    if native.library() is None:
+        pytest.skip("no native library")
+    g = torch.Generator().manual_seed(C * W)
+    x = torch.randn(B, C, H, W, generator=g, requires_grad=True)
+    y = padding._WrapColumnsChannelsLast.apply(x, left, right)
+    ref = pad_panorama(x.detach(), (left, right))
+    assert y.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(y, ref, rtol=0, atol=0)
+    up = torch.randn(ref.shape, generator=g)
+    y.backward(up)
+    xr = x.detach().clone().requires_grad_()
+    pad_panorama(xr, (left, right)).backward(up)
+    torch.testing.assert_close(x.grad, xr.grad, rtol=1e-6, atol=1e-6)
+    assert x.grad.is_contiguous()
+
+
+# (name, x shape, out channels, kernel, stride, dilation, takes the channels-last wrap)
+HEADS = [
+    ("semantic-like head: 32 -> 14 at 128x256", (1, 32, 128, 256), 14, 3, 1, 1, True),
+    ("batch 2, 5x5 kernel (wrap 2)", (2, 16, 128, 256), 3, 5, 1, 1, True),
+    ("stride 2, dilation 2", (1, 32, 128, 256), 8, 3, 2, 2, True),
+    ("16 output channels: NCHW", (1, 32, 128, 256), 16, 3, 1, 1, False),
+    ("a small map: NCHW", (1, 8, 64, 64), 4, 3, 1, 1, False),
+]
+
+
+@pytest.mark.parametrize("name,shape,cout,k,stride,dilation,cl", HEADS, ids=[h[0] for h in HEADS])
+def test_heads_wrap_into_channels_last_with_the_same_result(name, shape, cout, k, stride, dilation, cl, monkeypatch):
+    if native.library() is None:
+        pytest.skip("no native library")
+    torch.manual_seed(0)
+    conv = CircularConv2d(shape[1], cout, k, stride=stride, padding="same", dilation=dilation)
+    x = torch.randn(shape, requires_grad=True)
+    assert padding.channels_last_pays(x, conv.weight, conv.wrap_padding[1]) == cl
+
+    def run(enabled: bool):
+        monkeypatch.setattr(padding, "CHANNELS_LAST_HEADS", enabled)
+        x.grad = None
+        conv.zero_grad()
+        y = conv(x)
+        y.backward(torch.linspace(-1, 1, y.numel()).view(y.shape))
+        return y.detach(), x.grad.clone(), conv.weight.grad.clone(), conv.bias.grad.clone()
+
+    fast, ref = run(True), run(False)
+    assert fast[0].is_contiguous() and fast[1].is_contiguous()
+    for a, b in zip(fast, ref):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * float(b.abs().max()))
+
+
+def test_channels_last_wrap_rules():
+    x = torch.randn(1, 32, 128, 256)
+    w = torch.randn(14, 32, 3, 3)
+    assert padding.channels_last_pays(x, w, 1) == (native.library() is not None)
+    with torch.no_grad():                                               # inference: the border-strip path
+        assert not padding.channels_last_pays(x, w, 1)
+    assert not padding.channels_last_pays(x.double(), w.double(), 1)
+    assert not padding.channels_last_pays(x.contiguous(memory_format=torch.channels_last), w, 1)
+    assert not padding.channels_last_pays(x[..., :200], w, 1)          # not contiguous
+
+
+def test_channels_last_wrap_is_differentiable_twice():
+    """Under ``create_graph`` the gradient (the adjoint, linear in the upstream gradient) is built from
+    differentiable ops: its own derivative with respect to that upstream gradient is the wrap again."""
+    if native.library() is None:
+        pytest.skip("no native library")
+    torch.manual_seed(1)
+    x = torch.randn(1, 3, 4, 5, requires_grad=True)
+    v = torch.randn(1, 3, 4, 5)
+
+    def grads(wrap):
+        up = torch.randn(1, 3, 4, 8, generator=torch.Generator().manual_seed(2), requires_grad=True)
+        (gx,) = torch.autograd.grad(wrap(x), x, up, create_graph=True)
+        (gup,) = torch.autograd.grad((gx * v).sum(), up)
+        return gx.detach(), gup
+
+    fast = grads(lambda t: padding._WrapColumnsChannelsLast.apply(t, 2, 1))
+    ref = grads(lambda t: pad_panorama(t, (2, 1)))
+    for a, b in zip(fast, ref):
+        torch.testing.assert_close(a, b)
+    torch.testing.assert_close(fast[1], pad_panorama(v, (2, 1)))

@@ -32,7 +32,9 @@ extern int MKL_Set_Num_Threads_Local(int n) __attribute__((weak));
 #include <immintrin.h>
 #define MR 12
 #define NR 32
+#ifndef KC_BLOCK
 #define KC_BLOCK 256
+#endif
 
 /* c (mr, nr) (+)= a (mr, k) b (k, 32): a[i * rs + p * cs], b[p * 32 + j] (a packed panel, zero beyond nr). 24 zmm
  * accumulators; rows beyond mr re-read row 0 and are not stored. `accumulate`: 0 writes c, 1 adds to it, 2 writes
@@ -78,7 +80,9 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
 #include <immintrin.h>
 #define MR 6
 #define NR 16
+#ifndef KC_BLOCK
 #define KC_BLOCK 256
+#endif
 
 /* c (mr, nr) (+)= a (mr, k) b (k, 16): a[i * rs + p * cs], b[p * 16 + j] (a packed panel, zero beyond nr).
  * `accumulate` as the AVX-512 kernel's. */
