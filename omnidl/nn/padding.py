@@ -21,7 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import native
+from . import thin_layout
 from .capture import capturing
 from .unfold_conv import conv2d
 
@@ -97,51 +97,6 @@ class _WrapColumns(torch.autograd.Function):
         return gx, None, None
 
 
-class _WrapColumnsChannelsLast(torch.autograd.Function):
-    """:func:`_wrap_columns` of a contiguous float32 CPU map, written in channels-last memory (``csrc/wrap_layout.c``:
-    the wrap and the change of layout in one pass, and back again for the gradient, which arrives channels-last
-    from the convolution and leaves contiguous)."""
-
-    @staticmethod
-    def forward(ctx, x: Tensor, left: int, right: int) -> Tensor:   # type: ignore[override]
-        ctx.left, ctx.right = left, right
-        B, C, H, W = x.shape
-        out = torch.empty((B, C, H, left + W + right), dtype=x.dtype, memory_format=torch.channels_last)
-        _wrap_layout("omnidl_wrap_to_nhwc", x, out, left, right)
-        return out
-
-    @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor, None, None]:   # type: ignore[override]
-        left, right = ctx.left, ctx.right
-        if torch.is_grad_enabled():                    # create_graph: differentiable ops
-            return _unwrap(g, left, right), None, None
-        g = g.contiguous(memory_format=torch.channels_last)
-        B, C, H, Wp = g.shape
-        gx = g.new_empty((B, C, H, Wp - left - right))
-        _wrap_layout("omnidl_wrap_from_nhwc", gx, g, left, right)
-        return gx, None, None
-
-
-def _unwrap(g: Tensor, left: int, right: int) -> Tensor:
-    """The adjoint of :func:`_wrap_columns` from differentiable ops: ``(..., left + W + right)`` -> ``(..., W)``."""
-    w = g.shape[-1] - left - right
-    gx = g[..., left:left + w]
-    if left:
-        gx = gx + F.pad(g[..., :left], (w - left, 0))
-    if right:
-        gx = gx + F.pad(g[..., left + w:], (0, w - right))
-    return gx.contiguous()
-
-
-def _wrap_layout(name: str, nchw: Tensor, nhwc: Tensor, left: int, right: int) -> None:
-    B, C, H, W = nchw.shape
-    src, dst = (nchw, nhwc) if name == "omnidl_wrap_to_nhwc" else (nhwc, nchw)
-    rc = getattr(native.library(), name)(src.data_ptr(), B, C, H, W, left, right, dst.data_ptr(),
-                                         max(1, torch.get_num_threads()))
-    if rc:
-        raise RuntimeError(f"omnidl wrap: the native kernel {name} returned {rc}")
-
-
 class PanoramaPad2d(nn.Module):
     """Module form of :func:`pad_panorama` (horizontal wrap, vertical ``zeros``/``replicate``/``reflect``)."""
 
@@ -187,33 +142,15 @@ class CircularConv2d(nn.Conv2d):
         if (pw and self.stride == (1, 1) and 2 * pw == self.dilation[1] * (self.kernel_size[1] - 1)
                 and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL and not torch.is_grad_enabled()):
             return wrapped_conv2d(x, weight, bias, (ph, pw), self.dilation, self.groups)
-        if pw and channels_last_pays(x, weight, pw):
-            x = _WrapColumnsChannelsLast.apply(x, pw, pw)
-            return conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups).contiguous()
+        if pw and pw <= x.shape[-1] and thin_layout.pays(x, weight):    # a thin head: wrapped into channels-last
+            x = thin_layout.to_channels_last(x, pw, pw)
+            return F.conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups).contiguous()
         if pw:
             x = pad_panorama(x, pw)
         return conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", wrap_padding={self.wrap_padding} (horizontal wrap)"
-
-
-#: ``False``: never the channels-last wrap of :func:`channels_last_pays` (benchmarks' in-process A/B)
-CHANNELS_LAST_HEADS = True
-
-
-def channels_last_pays(x: Tensor, weight: Tensor, pw: int) -> bool:
-    """Whether a wrapping convolution with autograd pads ``x`` straight into channels-last memory
-    (:class:`_WrapColumnsChannelsLast`): fewer than 16 output channels (a task head: in NCHW, oneDNN reorders the
-    whole input to its 16-channel blocked layout on the forward and again for the weight's gradient, and its
-    backward of such a layer is slow) on a map of at least :data:`BORDER_FIX_NUMEL` elements, contiguous float32
-    on the CPU with the native library. FreDSNet's semantic output, 128 -> 14 channels 3x3 at 128x256 (2 threads):
-    forward + backward 52 against 71 ms; 1 output channel 33 against 55 ms; 32 -> 8 channels 8.8 against 11.7 ms.
-    The output is returned contiguous."""
-    return (CHANNELS_LAST_HEADS and torch.is_grad_enabled() and x.dim() == 4 and weight.dim() == 4
-            and weight.shape[0] < 16 and x.numel() >= BORDER_FIX_NUMEL and x.device.type == "cpu"
-            and x.dtype == torch.float32 and x.is_contiguous() and pw <= x.shape[-1] and not capturing()
-            and native.library() is not None)
 
 
 #: inputs with at least this many elements skip the wrapped copy of the whole map when no gradient is recorded
