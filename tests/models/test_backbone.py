@@ -26,9 +26,10 @@ def _downsample(cin, cout, stride):
 # (name, block factory, input shape, the convolutions that take the product)
 BLOCKS = [
     ("bottleneck, identity", lambda: Bottleneck(256, 64), (1, 256, 2, 4), 3),
-    ("bottleneck, strided downsampling", lambda: Bottleneck(128, 64, 2, _downsample(128, 256, 2)), (1, 128, 4, 8), 3),
+    ("bottleneck, strided downsampling", lambda: Bottleneck(128, 64, 2, _downsample(128, 256, 2)), (1, 128, 4, 8), 4),
     ("basic block, downsampling", lambda: BasicBlock(32, 64, 1, _downsample(32, 64, 1)), (2, 32, 2, 2), 3),
-    ("batch 2, maps too large for the product", lambda: Bottleneck(64, 16), (2, 64, 8, 8), 0),
+    ("batch 2, too large to be weight-heavy: the 1x1s pointwise", lambda: Bottleneck(64, 16), (2, 64, 8, 8), 2),
+    ("maps too large for any product", lambda: Bottleneck(256, 64), (1, 256, 48, 48), 0),
 ]
 
 

@@ -161,6 +161,48 @@ def test_the_rule(name, shape, wshape, stride, padding, groups, dtype, device, v
     assert weight_heavy(x, w, stride, padding, 1, groups) is verdict
 
 
+# (name, input shape, weight shape, stride, padding, groups, dtype, grad mode, verdict) of pointwise()
+POINTWISE = [
+    ("ResNet 1024 -> 256 on 8x16, training", (1, 1024, 8, 16), (256, 1024, 1, 1), 1, 0, 1, "f32", True, True),
+    ("2048 positions", (2, 64, 32, 32), (256, 64, 1, 1), 1, 0, 1, "f32", True, True),
+    ("2049 positions (not thin)", (1, 64, 1, 2049), (256, 64, 1, 1), 1, 0, 1, "f32", True, False),
+    ("a full-resolution thin reduction 16 -> 4", (1, 16, 128, 256), (4, 16, 1, 1), 1, 0, 1, "f32", True, True),
+    ("a full-resolution 17 -> 17", (1, 17, 128, 256), (17, 17, 1, 1), 1, 0, 1, "f32", True, False),
+    ("float64", (1, 8, 8, 8), (8, 8, 1, 1), 1, 0, 1, "f64", True, True),
+    ("inference (no autograd)", (1, 1024, 8, 16), (256, 1024, 1, 1), 1, 0, 1, "f32", False, False),
+    ("stride 2", (1, 64, 16, 16), (128, 64, 1, 1), 2, 0, 1, "f32", True, False),
+    ("padded", (1, 64, 16, 16), (128, 64, 1, 1), 1, 1, 1, "f32", True, False),
+    ("grouped", (1, 64, 16, 16), (128, 32, 1, 1), 1, 0, 2, "f32", True, False),
+    ("3x3", (1, 64, 16, 16), (128, 64, 3, 3), 1, 1, 1, "f32", True, False),
+    ("float16", (1, 64, 16, 16), (128, 64, 1, 1), 1, 0, 1, "f16", True, False),
+]
+
+
+@pytest.mark.parametrize("name,shape,wshape,stride,padding,groups,dtype,grad,verdict", POINTWISE,
+                         ids=[r[0] for r in POINTWISE])
+def test_the_pointwise_rule(name, shape, wshape, stride, padding, groups, dtype, grad, verdict, monkeypatch):
+    x = torch.empty(shape, dtype=DTYPES[dtype])
+    w = torch.empty(wshape, dtype=DTYPES[dtype])
+    with torch.set_grad_enabled(grad):
+        assert U.pointwise(x, w, stride, padding, groups) is verdict
+        monkeypatch.setattr(U, "POINTWISE", False)
+        assert U.pointwise(x, w, stride, padding, groups) is False
+
+
+@pytest.mark.parametrize("shape,wshape", [((1, 256, 8, 16), (64, 256, 1, 1)), ((2, 16, 32, 64), (4, 16, 1, 1))])
+def test_pointwise_layers_equal_f_conv2d_with_gradients(shape, wshape):
+    x, w, b = _operands(shape, wshape, True, False, torch.float32)
+    for t in (x, w, b):
+        t.requires_grad_(True)
+    y = conv2d(x, w, b)
+    up = torch.randn(y.shape, generator=torch.Generator().manual_seed(3))
+    grads = torch.autograd.grad(y, (x, w, b), up)
+    ref = F.conv2d(x, w, b)
+    ref_grads = torch.autograd.grad(ref, (x, w, b), up)
+    for a, r in zip((y, *grads), (ref, *ref_grads)):
+        _close(a.double(), r.double(), 1e-5)
+
+
 def test_disabled_and_light_calls_are_f_conv2d_exactly(monkeypatch):
     x, w, b = _operands((1, 6, 4, 5), (80, 6, 3, 3), True, False, torch.float32)
     ref = F.conv2d(x, w, b, 1, 1)
