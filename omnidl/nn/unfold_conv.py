@@ -19,6 +19,9 @@ on 8x16 38 against 66 ms; 512 channels on 8x16 7 against 7-12 ms; 256 channels o
 longer small, 7.5 against 6.0 ms, hence the rule of :func:`weight_heavy`. Two images of 1024 channels on 4x8:
 28-30 ms, against 37-48 ms for a broadcast product per image and 70 ms for ``F.conv2d``.
 
+In training, 1x1 convolutions on small or thin maps take the same product (:func:`pointwise`: their columns are
+the input itself, and the product skips oneDNN's NCHW re-layouts).
+
 :func:`conv2d` is ``F.conv2d`` with that choice made; :func:`module_conv2d` is ``conv(x)`` with it, for plain
 ``nn.Conv2d`` modules (other classes are called as they are: :class:`~omnidl.nn.padding.CircularConv2d` makes
 the choice itself).
@@ -173,10 +176,10 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
 
     Float32 products that build no autograd graph run on omnidl's register kernel (``omnidl_gemm`` of
     ``csrc/fixed_conv.c``, :mod:`omnidl.nn.native`), which reads ``a`` where it lies when it is a weight and copies
-    it block by block first when it is a weight's transpose, and splits its rows among the threads. These products have few columns (one per output position, 32 for a
-    ``4x8`` map), where the BLAS runs well below its peak: for ``1024 -> 1024`` channels on ``4x8`` (2 threads)
-    the forward took 3.4 against 4.9 ms, the input gradient's ``W^T g`` 3.1 against 6.6 ms, the weight
-    gradient 4.3 against 5.7 ms. Everything else (float64, ``create_graph``, no native library or a build
+    it block by block first when it is a weight's transpose, and splits its rows among the threads. These
+    products have few columns (one per output position, 32 for a ``4x8`` map), where the BLAS runs well below its
+    peak: for ``1024 -> 1024`` channels on ``4x8`` (2 threads, an AMD host) the forward took 3.4 against 4.9 ms,
+    the input gradient's ``W^T g`` 3.1 against 6.6 ms, the weight gradient 4.3 against 5.7 ms. Everything else (float64, ``create_graph``, no native library or a build
     without the register kernel) is PyTorch's product. Sums run in another order than the BLAS's: the results
     agree to float32 rounding.
     """
@@ -241,8 +244,8 @@ class _Product(torch.autograd.Function):
 
 def conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride: _Pair = 1, padding: _Pair | str = 0,
            dilation: _Pair = 1, groups: int = 1) -> Tensor:
-    """``F.conv2d`` with the same arguments; :func:`unfold_conv2d` where :func:`weight_heavy`, on channels-last
-    memory where :func:`omnidl.nn.thin_layout.pays`."""
+    """``F.conv2d`` with the same arguments; :func:`unfold_conv2d` where :func:`weight_heavy` or :func:`pointwise`,
+    on channels-last memory where :func:`omnidl.nn.thin_layout.pays`."""
     if weight_heavy(x, weight, stride, padding, dilation, groups) or pointwise(x, weight, stride, padding, groups):
         return unfold_conv2d(x, weight, bias, stride, padding, dilation)  # type: ignore[arg-type]
     if thin_layout.pays(x, weight):                 # few output channels on a large map: channels-last memory
