@@ -87,14 +87,7 @@ class _WrapColumns(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g: Tensor) -> tuple[Tensor, None, None]:   # type: ignore[override]
-        left, right = ctx.left, ctx.right
-        w = g.shape[-1] - left - right
-        gx = g[..., left:left + w].clone()
-        if left:
-            gx[..., w - left:] += g[..., :left]
-        if right:
-            gx[..., :right] += g[..., left + w:]
-        return gx, None, None
+        return thin_layout.unwrap(g, ctx.left, ctx.right), None, None
 
 
 class PanoramaPad2d(nn.Module):

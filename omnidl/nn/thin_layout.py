@@ -70,7 +70,7 @@ class _ToChannelsLast(torch.autograd.Function):
     def backward(ctx, g: Tensor) -> tuple[Tensor, None, None]:   # type: ignore[override]
         left, right = ctx.left, ctx.right
         if torch.is_grad_enabled():                    # create_graph: differentiable ops
-            return unwrap(g, left, right), None, None
+            return unwrap(g, left, right).contiguous(), None, None
         g = g.contiguous(memory_format=torch.channels_last)
         B, C, H, Wp = g.shape
         gx = g.new_empty((B, C, H, Wp - left - right))
@@ -79,15 +79,16 @@ class _ToChannelsLast(torch.autograd.Function):
 
 
 def unwrap(g: Tensor, left: int, right: int) -> Tensor:
-    """The adjoint of the wrap from differentiable ops: ``(..., left + W + right)`` -> ``(..., W)`` contiguous, the
-    wrapped strips added onto the columns they came from."""
+    """The adjoint of the wrap, ``(..., left + W + right)`` -> ``(..., W)``: the middle columns copied once and the
+    wrapped strips added onto the columns they came from (differentiable: autograd records the in-place adds on the
+    copy). Also the backward of :func:`omnidl.nn.padding.pad_panorama`'s wrap."""
     w = g.shape[-1] - left - right
-    gx = g[..., left:left + w]
+    gx = g[..., left:left + w].clone()
     if left:
-        gx = gx + torch.nn.functional.pad(g[..., :left], (w - left, 0))
+        gx[..., w - left:] += g[..., :left]
     if right:
-        gx = gx + torch.nn.functional.pad(g[..., left + w:], (0, w - right))
-    return gx.contiguous()
+        gx[..., :right] += g[..., left + w:]
+    return gx
 
 
 def _run(name: str, nchw: Tensor, nhwc: Tensor, left: int, right: int) -> None:

@@ -1,4 +1,4 @@
-/* A panorama's horizontal wrap together with a change of layout, for omnidl.nn.padding (float32):
+/* A panorama's horizontal wrap together with a change of layout, for omnidl.nn.thin_layout (float32):
  *
  *     to_nhwc    xp[b, h, j, c] = x[b, c, h, (j - left) mod W]                 x (B, C, H, W) -> xp (B, H, Wp, C)
  *     from_nhwc  gx[b, c, h, w] = sum of g[b, h, j, c] over the j with (j - left) mod W == w     (its adjoint)
@@ -18,12 +18,12 @@
 
 static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
 
-/* dst[j * C + c] = src[c * plane + col(j)] for j in [j0, j1), c in [0, C): col(j) = (j - left) mod W */
-static void row_to_nhwc(const float *restrict src, int64_t plane, int64_t C, int64_t W, int64_t left, int64_t j0,
-                        int64_t j1, float *restrict dst) {
+/* dst[j * C + c] = src[c * plane + col(j)] for j in [0, Wp), c in [0, C): col(j) = (j - left) mod W */
+static void row_to_nhwc(const float *restrict src, int64_t plane, int64_t C, int64_t W, int64_t left, int64_t Wp,
+                        float *restrict dst) {
     for (int64_t c0 = 0; c0 < C; c0 += TILE)
-        for (int64_t t0 = j0; t0 < j1; t0 += TILE) {
-            const int64_t c1 = min64(c0 + TILE, C), t1 = min64(t0 + TILE, j1);
+        for (int64_t t0 = 0; t0 < Wp; t0 += TILE) {
+            const int64_t c1 = min64(c0 + TILE, C), t1 = min64(t0 + TILE, Wp);
             for (int64_t j = t0; j < t1; ++j) {
                 int64_t w = j - left;
                 w = w < 0 ? w + W : w >= W ? w - W : w;
@@ -42,7 +42,7 @@ int omnidl_wrap_to_nhwc(const float *x, int64_t B, int64_t C, int64_t H, int64_t
 #pragma omp parallel for schedule(static) num_threads(nthreads)
     for (int64_t r = 0; r < rows; ++r) {
         const int64_t b = r / H, h = r % H;
-        row_to_nhwc(x + b * C * H * W + h * W, H * W, C, W, left, 0, Wp, xp + r * Wp * C);
+        row_to_nhwc(x + b * C * H * W + h * W, H * W, C, W, left, Wp, xp + r * Wp * C);
     }
     return 0;
 }
