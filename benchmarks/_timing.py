@@ -3,7 +3,11 @@
 Rules every benchmark follows (issue 17, item 7): each target is printed as a figure AND a ratio to a
 baseline measured in the same run (interleaved, so that a change of machine load hits both alike), and
 the 1-minute load average is printed with a flag when it exceeds the benchmark's own threads (then
-absolute times are not comparable with anything; ratios are less affected but still noisy).
+absolute times are not comparable with anything; ratios are less affected but still noisy). On a virtual
+machine the load average misses the largest disturbance: the hypervisor running other guests on our
+cores ("steal" time). One KVM host of issue 17 ran a register-only FMA loop at 41 to 134 GFLOP/s within
+minutes with the load average below 1; so the share of CPU time stolen since the previous check is
+printed and flagged as well (Linux ``/proc/stat``; absent elsewhere).
 """
 from __future__ import annotations
 
@@ -28,6 +32,57 @@ def median_times(fn: Callable[[], object], reps: int, warmup: int = 1) -> tuple[
     return statistics.median(wall), statistics.median(cpu)
 
 
+#: steal share of the CPU time above which figures are flagged (one in ten cycles taken by other guests)
+STEAL_FLAG = 0.10
+
+
+def cpu_times(text: str | None = None) -> tuple[int, int] | None:
+    """``(steal, total)`` clock ticks of all CPUs from ``/proc/stat``'s ``cpu`` line (``text``: its content,
+    read from the file when ``None``); ``None`` where there is no such line. ``total`` sums user, nice,
+    system, idle, iowait, irq, softirq and steal (guest time is already inside user and nice)."""
+    if text is None:
+        try:
+            with open("/proc/stat") as f:
+                text = f.read()
+        except OSError:
+            return None
+    for line in text.splitlines():
+        parts = line.split()
+        if parts and parts[0] == "cpu":
+            try:
+                ticks = [int(v) for v in parts[1:9]]
+            except ValueError:
+                return None
+            if len(ticks) < 8:
+                return None
+            return ticks[7], sum(ticks)
+    return None
+
+
+def steal_share(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float | None:
+    """Share of the CPU time between two :func:`cpu_times` readings that the hypervisor gave to other guests
+    (``None`` without both readings or without elapsed ticks)."""
+    if before is None or after is None or after[1] <= before[1]:
+        return None
+    return max(0, after[0] - before[0]) / (after[1] - before[1])
+
+
+#: (time.monotonic(), cpu_times()) of every check, the first taken at import
+_CHECKS: list[tuple[float, tuple[int, int] | None]] = [(time.monotonic(), cpu_times())]
+
+
+def steal_since_last(min_window: float = 1.0) -> float | None:
+    """:func:`steal_share` since the latest previous check at least ``min_window`` seconds ago (the first
+    check: this module's import), so that a line printed right after the check that closed a timed loop
+    still reports that loop's window."""
+    now = (time.monotonic(), cpu_times())
+    old = [c for c in _CHECKS if c[0] <= now[0] - min_window]
+    share = steal_share((old[-1] if old else _CHECKS[0])[1], now[1])
+    _CHECKS.append(now)
+    del _CHECKS[1:-64]
+    return share
+
+
 def load1() -> float:
     """1-minute load average (``nan`` where the platform has none)."""
     try:
@@ -37,11 +92,18 @@ def load1() -> float:
 
 
 def load_line(threads: int, what: str = "") -> str:
-    """``# load average ... (own threads N)`` plus a LOADED flag when the load exceeds ``threads``."""
+    """``# load average ... (own threads N), hypervisor steal ...`` plus a LOADED flag when the load exceeds
+    ``threads`` and a STOLEN flag when the steal share since the previous check (:func:`steal_since_last`)
+    exceeds :data:`STEAL_FLAG`."""
     la = load1()
+    steal = steal_since_last()
     flag = "" if la <= threads else (f"  ** LOADED: load {la:.2f} > {threads} own threads: absolute figures "
                                      "are not comparable; ratios are noisy **")
-    return f"# load average (1 min) {la:.2f}{' ' + what if what else ''}, own threads {threads}{flag}"
+    if steal is not None and steal > STEAL_FLAG:
+        flag += (f"  ** STOLEN: the hypervisor took {100 * steal:.0f} % of the CPU time: absolute figures are not "
+                 "comparable; ratios are noisy **")
+    shown = "" if steal is None else f", hypervisor steal {100 * steal:.1f} % since the last check"
+    return f"# load average (1 min) {la:.2f}{' ' + what if what else ''}, own threads {threads}{shown}{flag}"
 
 
 def host_line() -> str:
@@ -64,7 +126,10 @@ def host_line() -> str:
 
 
 def is_loaded(threads: int) -> bool:
-    return load1() > threads
+    """True when the load exceeds ``threads`` or the steal share since the previous check exceeds
+    :data:`STEAL_FLAG` (benchmarks call it before and after their timed loop)."""
+    steal = steal_since_last()
+    return load1() > threads or (steal is not None and steal > STEAL_FLAG)
 
 
 def interleaved(jobs: dict[str, Callable[[], object]], reps: int, warmup: int = 1,

@@ -4,6 +4,7 @@
 # every script flags its figures otherwise. Before each benchmark the script waits until the 1-minute load
 # average has fallen below SETTLE_LOAD (default 1.0), at most SETTLE_MAX seconds (default 90): run back to
 # back, each benchmark would start with the load its predecessor's own threads left in that average.
+# Every load line also gives the hypervisor's steal share since the previous check (flagged STOLEN above 10 %).
 # Usage: bash benchmarks/run_all.sh [OUT_DIR]
 set -u
 cd "$(dirname "$0")/.."
@@ -33,5 +34,5 @@ run synth          python benchmarks/synth.py --reps 5 --seeds 3 11
 run fredsnet       python benchmarks/fredsnet.py --reps 3
 run layout         python benchmarks/layout.py --reps 10
 run gpu            python benchmarks/gpu.py
-grep -h "^TARGET\|LOADED" "$out"/*.txt > "$out/summary.txt"
+grep -h "^TARGET\|LOADED\|STOLEN" "$out"/*.txt > "$out/summary.txt"
 echo "=== summary: $out/summary.txt"; cat "$out/summary.txt"
