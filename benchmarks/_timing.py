@@ -67,15 +67,16 @@ def steal_share(before: tuple[int, int] | None, after: tuple[int, int] | None) -
     return max(0, after[0] - before[0]) / (after[1] - before[1])
 
 
-#: (time.monotonic(), cpu_times()) of every check, the first taken at import
-_CHECKS: list[tuple[float, tuple[int, int] | None]] = [(time.monotonic(), cpu_times())]
+_clock = time.monotonic
+#: (_clock(), cpu_times()) of every check, the first taken at import
+_CHECKS: list[tuple[float, tuple[int, int] | None]] = [(_clock(), cpu_times())]
 
 
 def steal_since_last(min_window: float = 1.0) -> float | None:
     """:func:`steal_share` since the latest previous check at least ``min_window`` seconds ago (the first
     check: this module's import), so that a line printed right after the check that closed a timed loop
     still reports that loop's window."""
-    now = (time.monotonic(), cpu_times())
+    now = (_clock(), cpu_times())
     old = [c for c in _CHECKS if c[0] <= now[0] - min_window]
     share = steal_share((old[-1] if old else _CHECKS[0])[1], now[1])
     _CHECKS.append(now)

@@ -46,7 +46,7 @@ def _fake_clock(monkeypatch, readings):
     def tick():
         current["t"], current["ct"] = next(it)
         return current["t"]
-    monkeypatch.setattr(_timing.time, "monotonic", tick)
+    monkeypatch.setattr(_timing, "_clock", tick)
     monkeypatch.setattr(_timing, "cpu_times", lambda text=None: current["ct"])
     monkeypatch.setattr(_timing, "_CHECKS", [(0.0, (0, 1000))])
 
