@@ -7,7 +7,8 @@ absolute times are not comparable with anything; ratios are less affected but st
 machine the load average misses the largest disturbance: the hypervisor running other guests on our
 cores ("steal" time). One KVM host of issue 17 ran a register-only FMA loop at 41 to 134 GFLOP/s within
 minutes with the load average below 1; so the share of CPU time stolen since the previous check is
-printed and flagged as well (Linux ``/proc/stat``; absent elsewhere).
+printed and flagged as well (Linux ``/proc/stat``; absent elsewhere). It does not see everything either: other
+guests' use of the shared caches and memory moved figures by a third on that host with no steal recorded.
 """
 from __future__ import annotations
 
