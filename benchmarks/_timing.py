@@ -85,6 +85,11 @@ def steal_since_last(min_window: float = 1.0) -> float | None:
     return share
 
 
+def stolen(share: float | None) -> bool:
+    """True when a steal share (:func:`steal_since_last`) exceeds :data:`STEAL_FLAG`."""
+    return share is not None and share > STEAL_FLAG
+
+
 def load1() -> float:
     """1-minute load average (``nan`` where the platform has none)."""
     try:
@@ -101,7 +106,7 @@ def load_line(threads: int, what: str = "") -> str:
     steal = steal_since_last()
     flag = "" if la <= threads else (f"  ** LOADED: load {la:.2f} > {threads} own threads: absolute figures "
                                      "are not comparable; ratios are noisy **")
-    if steal is not None and steal > STEAL_FLAG:
+    if stolen(steal):
         flag += (f"  ** STOLEN: the hypervisor took {100 * steal:.0f} % of the CPU time: absolute figures are not "
                  "comparable; ratios are noisy **")
     shown = "" if steal is None else f", hypervisor steal {100 * steal:.1f} % since the last check"
@@ -130,8 +135,8 @@ def host_line() -> str:
 def is_loaded(threads: int) -> bool:
     """True when the load exceeds ``threads`` or the steal share since the previous check exceeds
     :data:`STEAL_FLAG` (benchmarks call it before and after their timed loop)."""
-    steal = steal_since_last()
-    return load1() > threads or (steal is not None and steal > STEAL_FLAG)
+    steal = steal_since_last()          # always taken: it is also this check's snapshot
+    return load1() > threads or stolen(steal)
 
 
 def interleaved(jobs: dict[str, Callable[[], object]], reps: int, warmup: int = 1,
