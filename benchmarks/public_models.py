@@ -173,10 +173,11 @@ def _step_flop(step: Callable[[], None]) -> float:
     """Multiply-adds x 2 of the convolutions and matrix products in one call of ``step`` (PyTorch's counter)."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    from omnidl.nn import expansion, unfold_conv
+    from omnidl.nn import expansion, unfold_conv, winograd_train
     counter = FlopCounterMode(display=False)
     # the counter sees PyTorch's ops only: the native paths that replace convolutions or products are switched off
-    switches = [(unfold_conv, "NATIVE_PRODUCTS"), (expansion, "ENABLED")]
+    # (the Winograd layers are counted as the direct convolutions they compute: 2.25x their multiplications)
+    switches = [(unfold_conv, "NATIVE_PRODUCTS"), (expansion, "ENABLED"), (winograd_train, "ENABLED")]
     kept = [getattr(mod, name) for mod, name in switches]
     for mod, name in switches:
         setattr(mod, name, False)

@@ -21,7 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import thin_layout
+from . import thin_layout, winograd_train
 from .capture import capturing
 from .unfold_conv import conv2d
 
@@ -135,6 +135,8 @@ class CircularConv2d(nn.Conv2d):
         if (pw and self.stride == (1, 1) and 2 * pw == self.dilation[1] * (self.kernel_size[1] - 1)
                 and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL and not torch.is_grad_enabled()):
             return wrapped_conv2d(x, weight, bias, (ph, pw), self.dilation, self.groups)
+        if (pw, ph) == (1, 1) and winograd_train.applies(x, weight, self.stride, 1, self.dilation, self.groups):
+            return winograd_train.conv2d(x, weight, bias, wrap=1)          # a 3x3 layer in training, wrapped
         if pw and pw <= x.shape[-1] and thin_layout.pays(x, weight):    # a thin head: wrapped into channels-last
             x = thin_layout.to_channels_last(x, pw, pw)
             return F.conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups).contiguous()

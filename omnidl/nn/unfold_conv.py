@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import native, thin_layout
+from . import native, thin_layout, winograd_train
 from .capture import capturing
 from .offsets import _pair, output_size
 from .sampling import _is_channels_last
@@ -245,9 +245,12 @@ class _Product(torch.autograd.Function):
 def conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride: _Pair = 1, padding: _Pair | str = 0,
            dilation: _Pair = 1, groups: int = 1) -> Tensor:
     """``F.conv2d`` with the same arguments; :func:`unfold_conv2d` where :func:`weight_heavy` or :func:`pointwise`,
-    on channels-last memory where :func:`omnidl.nn.thin_layout.pays`."""
+    :func:`omnidl.nn.winograd_train.conv2d` where that :func:`~omnidl.nn.winograd_train.applies`, on channels-last
+    memory where :func:`omnidl.nn.thin_layout.pays`."""
     if weight_heavy(x, weight, stride, padding, dilation, groups) or pointwise(x, weight, stride, padding, groups):
         return unfold_conv2d(x, weight, bias, stride, padding, dilation)  # type: ignore[arg-type]
+    if winograd_train.applies(x, weight, stride, padding, dilation, groups):   # a 3x3 layer in training
+        return winograd_train.conv2d(x, weight, bias, wrap=0)
     if thin_layout.pays(x, weight):                 # few output channels on a large map: channels-last memory
         return F.conv2d(thin_layout.to_channels_last(x), weight, bias, stride, padding, dilation, groups).contiguous()
     return F.conv2d(x, weight, bias, stride, padding, dilation, groups)

@@ -22,7 +22,6 @@ import torch
 from torch import Tensor, nn
 
 from . import fused
-from .padding import CircularConv2d
 
 #: the largest ``in_channels * out_channels`` taken (the transformed weight is 16 / 9 of the weight's size)
 MAX_CHANNEL_PRODUCT = 512 * 512
@@ -45,6 +44,7 @@ def wrap_mode(x: Tensor, conv: nn.Module) -> int | None:
             and x.shape[0] * ((x.shape[-2] + 1) // 2) * ((x.shape[-1] + 1) // 2)
             >= max(conv.in_channels, conv.out_channels) // 4 + 16):
         return None
+    from .padding import CircularConv2d   # here: padding imports unfold_conv, which imports winograd_train and this
     if type(conv) is CircularConv2d:
         return 1 if tuple(conv.wrap_padding) == (1, 1) else None
     if type(conv) is nn.Conv2d:

@@ -737,49 +737,78 @@ int64_t omnidl_wino_packed_floats(int C, int cout) {
 #endif
 }
 
-/* w (cout, C, 3, 3) contiguous -> 16 packed panels sets of U[xi] (C, cout). Returns 0, 1 when out of memory, 2 on
- * the BLAS build. */
-int omnidl_wino_pack(const float *w, int cout, int C, float *up, int nthreads) {
 #if HAVE_KERNEL
-    float *u = (float *)malloc(sizeof(float) * 16 * (size_t)C * (size_t)cout);   /* U[xi][c][co] */
-    if (!u) return 1;
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-    for (int co = 0; co < cout; ++co) {
-        for (int c = 0; c < C; ++c) {
-            const float *g = w + ((int64_t)co * C + c) * 9;
-            float t[4][3];                               /* G g */
-            for (int j = 0; j < 3; ++j) {
-                t[0][j] = g[j];
-                t[1][j] = 0.5f * (g[j] + g[3 + j] + g[6 + j]);
-                t[2][j] = 0.5f * (g[j] - g[3 + j] + g[6 + j]);
-                t[3][j] = g[6 + j];
-            }
-            for (int i = 0; i < 4; ++i) {                /* (G g) G^T */
-                const float r[4] = {t[i][0], 0.5f * (t[i][0] + t[i][1] + t[i][2]), 0.5f * (t[i][0] - t[i][1] + t[i][2]),
-                                    t[i][2]};
-                for (int j = 0; j < 4; ++j) u[((int64_t)(4 * i + j) * C + c) * cout + co] = r[j];
-            }
+/* u[xi][j] = (G g_j G^T)[xi] for the filters g_j = src + j * js (nine values; flip: taken in reverse order),
+ * j < nr, vectorised over j (the loads are gathers) */
+static inline __attribute__((always_inline)) void wino_filters(const float *src, int64_t js, int flip, int nr, float u[16][NR]) {
+#pragma omp simd
+    for (int j = 0; j < nr; ++j) {
+        const float *g = src + j * js;
+        float t[4][3];                                       /* G g */
+        for (int k = 0; k < 3; ++k) {
+            const float a = g[flip ? 8 - k : k], b = g[flip ? 5 - k : 3 + k], c = g[flip ? 2 - k : 6 + k];
+            t[0][k] = a;
+            t[1][k] = 0.5f * (a + b + c);
+            t[2][k] = 0.5f * (a - b + c);
+            t[3][k] = c;
+        }
+        for (int i = 0; i < 4; ++i) {                        /* (G g) G^T */
+            u[4 * i][j] = t[i][0];
+            u[4 * i + 1][j] = 0.5f * (t[i][0] + t[i][1] + t[i][2]);
+            u[4 * i + 2][j] = 0.5f * (t[i][0] - t[i][1] + t[i][2]);
+            u[4 * i + 3][j] = t[i][2];
         }
     }
-    const int64_t stride = packed_floats(C, cout);
-    for (int xi = 0; xi < 16; ++xi) pack_b(C, cout, u + (int64_t)xi * C * cout, cout, 1, up + xi * stride);
-    free(u);
+    for (int xi = 0; xi < 16; ++xi)
+        for (int j = nr; j < NR; ++j) u[xi][j] = 0.0f;
+}
+#endif
+
+/* w (cout, C, 3, 3) contiguous -> the 16 packed panel sets of U[xi] (C, cout), U = G g G^T per filter g.
+ * flip = 1: those of the input gradient's filter instead, w' (C, cout, 3, 3) with w'[c][co] = w[co][c] turned by
+ * 180 degrees (U[xi] (cout, C): the adjoint of a stride-1 3x3 convolution with padding 1, zero or wrapped, is the
+ * same convolution with w'). Written straight into the panels (panel q of U[xi] at up + xi * stride + q * rows * NR,
+ * row r of it NR values), the threads taking whole panels. Returns 0, 2 on the BLAS build. */
+int omnidl_wino_pack_flip(const float *w, int cout, int C, int flip, float *up, int nthreads) {
+#if HAVE_KERNEL
+    const int rows = flip ? cout : C, cols = flip ? C : cout;     /* U[xi] (rows, cols) */
+    const int panels = (cols + NR - 1) / NR;
+    const int64_t stride = packed_floats(rows, cols);
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+    for (int q = 0; q < panels; ++q) {
+        const int nr = cols - q * NR < NR ? cols - q * NR : NR;
+        for (int r = 0; r < rows; ++r) {
+            /* the panel row's 16 x NR values, then each xi's NR in one run (the 16 destinations lie `stride` apart,
+             * in the same cache sets: written value by value they evicted each other) */
+            float u[16][NR];
+            if (flip)   /* row r = output channel r of w, column = its input channel */
+                wino_filters(w + ((int64_t)r * C + q * NR) * 9, 9, 1, nr, u);
+            else        /* row r = input channel r, column = output channel */
+                wino_filters(w + ((int64_t)q * NR * C + r) * 9, (int64_t)C * 9, 0, nr, u);
+            float *d = up + (int64_t)q * rows * NR + (int64_t)r * NR;
+            for (int xi = 0; xi < 16; ++xi) memcpy(d + xi * stride, u[xi], sizeof(u[xi]));
+        }
+    }
     return 0;
 #else
-    (void)w; (void)cout; (void)C; (void)up; (void)nthreads;
+    (void)w; (void)cout; (void)C; (void)flip; (void)up; (void)nthreads;
     return 2;
 #endif
 }
 
+/* omnidl_wino_pack_flip without the flip (inference: omnidl.nn.winograd.pack) */
+int omnidl_wino_pack(const float *w, int cout, int C, float *up, int nthreads) {
+    return omnidl_wino_pack_flip(w, cout, C, 0, up, nthreads);
+}
+
 #if HAVE_KERNEL
-/* V[xi][i][c] of the tiles t0..t0+m-1 of image rows x (H, W, C); zero: C zeros */
 /* floats between the 16 planes of a block's transformed tiles: a cache line more than the plane, so the 16
  * streams do not fall into the same cache sets (planes of a multiple of 4 kB would) */
 static int64_t wino_plane(int m, int n) { return (int64_t)m * n + 16; }
 
+/* V[xi][i][c] (at V[xi * plane + i * C + c]) of the tiles t0..t0+m-1 of image rows x (H, W, C); zero: C zeros */
 static void wino_input(const float *x, int H, int W, int C, int wrap, const float *zero, int64_t t0, int m, int tw,
-                       float *V) {
-    const int64_t plane = wino_plane(m, C);
+                       float *V, int64_t plane) {
     for (int i = 0; i < m; ++i) {
         const int64_t t = t0 + i;
         const int ty = (int)(t / tw), tx = (int)(t % tw);
@@ -802,6 +831,7 @@ static void wino_input(const float *x, int H, int W, int C, int wrap, const floa
         float *restrict v7 = v + 7 * plane, *restrict v8 = v + 8 * plane, *restrict v9 = v + 9 * plane;
         float *restrict v10 = v + 10 * plane, *restrict v11 = v + 11 * plane, *restrict v12 = v + 12 * plane;
         float *restrict v13 = v + 13 * plane, *restrict v14 = v + 14 * plane, *restrict v15 = v + 15 * plane;
+#pragma omp simd
         for (int c = 0; c < C; ++c) {
             /* rows of B^T d: s_a_b */
             const float s00 = p00[c] - p20[c], s01 = p01[c] - p21[c], s02 = p02[c] - p22[c], s03 = p03[c] - p23[c];
@@ -889,7 +919,7 @@ int omnidl_wino_forward(const float *x, int B, int H, int W, int C, int wrap, co
                 const int64_t b = s / T, t0 = s % T;
                 const int m = (int)min64(block, min64(s1 - s, T - t0));
                 const float *xb = x + b * (int64_t)H * W * C;
-                wino_input(xb, H, W, C, wrap, zero, t0, m, tw, V);
+                wino_input(xb, H, W, C, wrap, zero, t0, m, tw, V, wino_plane(m, C));
                 for (int xi = 0; xi < 16; ++xi)
                     gemm_packed(m, cout, C, V + xi * wino_plane(m, C), C, 1, up + xi * stride, M + xi * wino_plane(m, cout),
                                 cout, 0);
@@ -904,6 +934,184 @@ int omnidl_wino_forward(const float *x, int B, int H, int W, int C, int wrap, co
 #else
     (void)x; (void)B; (void)H; (void)W; (void)C; (void)wrap; (void)up; (void)cout; (void)bias; (void)out;
     (void)accumulate; (void)relu; (void)block; (void)nthreads;
+    return 2;
+#endif
+}
+
+#if HAVE_KERNEL
+/* M = A gy A^T, A = [1 0; 1 1; 1 -1; 0 -1] (the adjoint of the forward's output transform), of the tiles t0..t0+n-1
+ * of image rows gy (H, W, cout), zero beyond the map, into rows i0.. of NR-column panels of mp rows: element (xi, i,
+ * co) at G[xi * gplane + (co / NR) * mp * NR + (i0 + i) * NR + co % NR], zero beyond cout; zero: cout zeros */
+static void wino_grad_tiles(const float *gy, int H, int W, int cout, const float *zero, int64_t t0, int n, int tw,
+                            float *G, int64_t gplane, int i0, int mp) {
+    const int panels = (cout + NR - 1) / NR;
+    for (int i = 0; i < n; ++i) {
+        const int64_t t = t0 + i;
+        const int ty = (int)(t / tw), tx = (int)(t % tw);
+        const float *g[2][2];
+        for (int a = 0; a < 2; ++a)
+            for (int b = 0; b < 2; ++b) {
+                const int r = 2 * ty + a, col = 2 * tx + b;
+                g[a][b] = (r < H && col < W) ? gy + ((int64_t)r * W + col) * cout : zero;
+            }
+        for (int q = 0; q < panels; ++q) {
+            const int c0 = q * NR, nr = cout - c0 < NR ? cout - c0 : NR;
+            const float *restrict y00 = g[0][0] + c0, *restrict y01 = g[0][1] + c0;
+            const float *restrict y10 = g[1][0] + c0, *restrict y11 = g[1][1] + c0;
+            float *restrict d = G + (int64_t)q * mp * NR + (int64_t)(i0 + i) * NR;
+#pragma omp simd
+            for (int j = 0; j < nr; ++j) {
+                /* rows of A gy: h_r_b */
+                const float h00 = y00[j], h01 = y01[j];
+                const float h10 = y00[j] + y10[j], h11 = y01[j] + y11[j];
+                const float h20 = y00[j] - y10[j], h21 = y01[j] - y11[j];
+                const float h30 = -y10[j], h31 = -y11[j];
+                d[j] = h00; d[gplane + j] = h00 + h01; d[2 * gplane + j] = h00 - h01; d[3 * gplane + j] = -h01;
+                d[4 * gplane + j] = h10; d[5 * gplane + j] = h10 + h11; d[6 * gplane + j] = h10 - h11;
+                d[7 * gplane + j] = -h11;
+                d[8 * gplane + j] = h20; d[9 * gplane + j] = h20 + h21; d[10 * gplane + j] = h20 - h21;
+                d[11 * gplane + j] = -h21;
+                d[12 * gplane + j] = h30; d[13 * gplane + j] = h30 + h31; d[14 * gplane + j] = h30 - h31;
+                d[15 * gplane + j] = -h31;
+            }
+            for (int j = nr; j < NR; ++j)
+                for (int xi = 0; xi < 16; ++xi) d[xi * gplane + j] = 0.0f;
+        }
+    }
+}
+
+/* gw (cout, C, 3, 3) = G^T gU G per filter, from gU[xi] (C, cout) at U + xi * plane. The threads split C in blocks
+ * of WO_C channels; per block and WO_CO output channels the filters are made in a small buffer (vectors over the
+ * output channels, which lie side by side in gU) and written out as one run per output channel (written filter by
+ * filter, each output channel's run lay C * 9 floats from the next: 1.1 ms for 256 x 256 channels) */
+#define WO_C 16
+#define WO_CO 16
+static void wino_weight_output(const float *U, int64_t plane, int C, int cout, float *gw) {
+    const int blocks = (C + WO_C - 1) / WO_C;
+#pragma omp for schedule(static)
+    for (int cb = 0; cb < blocks; ++cb) {
+        const int c0 = cb * WO_C, nc = C - c0 < WO_C ? C - c0 : WO_C;
+        for (int o0 = 0; o0 < cout; o0 += WO_CO) {
+            const int no = cout - o0 < WO_CO ? cout - o0 : WO_CO;
+            float f[WO_C * 9][WO_CO];                        /* f[ci * 9 + k][l]: filter (o0 + l, c0 + ci) */
+            for (int ci = 0; ci < nc; ++ci) {
+                const float *restrict u = U + (int64_t)(c0 + ci) * cout + o0;
+                float *restrict o0_ = f[ci * 9], *restrict o1 = f[ci * 9 + 1], *restrict o2 = f[ci * 9 + 2];
+                float *restrict o3 = f[ci * 9 + 3], *restrict o4 = f[ci * 9 + 4], *restrict o5 = f[ci * 9 + 5];
+                float *restrict o6 = f[ci * 9 + 6], *restrict o7 = f[ci * 9 + 7], *restrict o8 = f[ci * 9 + 8];
+#pragma omp simd
+                for (int l = 0; l < no; ++l) {
+                    /* gU G, row r: e_r_k */
+                    const float a1 = u[plane + l], a2 = u[2 * plane + l], b1 = u[5 * plane + l], b2 = u[6 * plane + l];
+                    const float c1 = u[9 * plane + l], c2 = u[10 * plane + l], d1 = u[13 * plane + l];
+                    const float d2 = u[14 * plane + l];
+                    const float e00 = u[l] + 0.5f * (a1 + a2), e01 = 0.5f * (a1 - a2);
+                    const float e02 = 0.5f * (a1 + a2) + u[3 * plane + l];
+                    const float e10 = u[4 * plane + l] + 0.5f * (b1 + b2), e11 = 0.5f * (b1 - b2);
+                    const float e12 = 0.5f * (b1 + b2) + u[7 * plane + l];
+                    const float e20 = u[8 * plane + l] + 0.5f * (c1 + c2), e21 = 0.5f * (c1 - c2);
+                    const float e22 = 0.5f * (c1 + c2) + u[11 * plane + l];
+                    const float e30 = u[12 * plane + l] + 0.5f * (d1 + d2), e31 = 0.5f * (d1 - d2);
+                    const float e32 = 0.5f * (d1 + d2) + u[15 * plane + l];
+                    /* G^T (gU G) */
+                    o0_[l] = e00 + 0.5f * (e10 + e20); o1[l] = e01 + 0.5f * (e11 + e21); o2[l] = e02 + 0.5f * (e12 + e22);
+                    o3[l] = 0.5f * (e10 - e20); o4[l] = 0.5f * (e11 - e21); o5[l] = 0.5f * (e12 - e22);
+                    o6[l] = 0.5f * (e10 + e20) + e30; o7[l] = 0.5f * (e11 + e21) + e31; o8[l] = 0.5f * (e12 + e22) + e32;
+                }
+            }
+            for (int l = 0; l < no; ++l) {
+                float *dst = gw + ((int64_t)(o0 + l) * C + c0) * 9;
+                for (int idx = 0; idx < nc * 9; ++idx) dst[idx] = f[idx][l];
+            }
+        }
+    }
+}
+#endif
+
+#if HAVE_KERNEL
+/* floats between the planes of the weight gradient's gU: a cache line more than C * cout (planes of a multiple of
+ * 4 kB fall into the same cache sets) */
+static int64_t wgrad_uplane(int C, int cout) { return (int64_t)C * cout + 16; }
+
+/* omnidl_wino_weight_grad's chunk (block tiles, at most one image's T) and its buffers' sizes in floats */
+static void wgrad_sizes(int H, int W, int C, int cout, int block, int nthreads, int *cap, int64_t *vplane,
+                        int64_t *gplane, int64_t *total) {
+    const int64_t T = (int64_t)((H + 1) / 2) * ((W + 1) / 2);
+    *cap = (int)min64(block < 1 ? 1 : block, T);
+    *vplane = wino_plane(*cap, C);
+    *gplane = packed_floats(*cap, cout) + 16;
+    const int64_t a_floats = (int64_t)A_BLOCK * MR * KC_BLOCK;
+    *total = 16 * (*vplane + *gplane + wgrad_uplane(C, cout)) + (C > cout ? C : cout)
+             + (a_floats > 0 ? a_floats : 1) * (nthreads < 1 ? 1 : nthreads);
+}
+#endif
+
+/* floats of the workspace of omnidl_wino_weight_grad (0 on the BLAS build) */
+int64_t omnidl_wino_weight_grad_floats(int H, int W, int C, int cout, int block, int nthreads) {
+#if HAVE_KERNEL
+    int cap;
+    int64_t vplane, gplane, total;
+    wgrad_sizes(H, W, C, cout, block, nthreads, &cap, &vplane, &gplane, &total);
+    return total;
+#else
+    (void)H; (void)W; (void)C; (void)cout; (void)block; (void)nthreads;
+    return 0;
+#endif
+}
+
+/* The weight gradient of omnidl_wino_forward's convolution: gw (cout, C, 3, 3) = the sum over B images x (B, H, W, C)
+ * and output gradients gy (B, H, W, cout), both channels-last, of gy times the 3x3 neighbourhoods of x (zero or
+ * wrapped columns: `wrap` as the forward's), written (not added). By F(2x2, 3x3): y = A^T [U (.) V] A per tile, so
+ * the gradient of U[xi] (C, cout) is the sum over tiles of V[xi]^T M[xi] with M = A gy A^T, and gw = G^T gU G. Per
+ * chunk of `block` tiles of one image the threads transform their share of the tiles, then run the 16 products
+ * (V[xi]^T (C, tiles) @ M[xi] (tiles, cout), accumulated into gU[xi]) split by xi. `work`: the caller's
+ * omnidl_wino_weight_grad_floats floats (kept between calls: fresh memory of that size is page-faulted on every
+ * call, which cost as much as the products). Returns 0, 2 on the BLAS build. */
+int omnidl_wino_weight_grad(const float *x, const float *gy, int B, int H, int W, int C, int cout, int wrap,
+                            float *gw, int block, float *work, int nthreads) {
+#if HAVE_KERNEL
+    const int tw = (W + 1) / 2;
+    const int64_t T = (int64_t)((H + 1) / 2) * tw;
+    int cap;
+    int64_t vplane, gplane, total;
+    wgrad_sizes(H, W, C, cout, block, nthreads, &cap, &vplane, &gplane, &total);
+    const int64_t a_floats = (int64_t)A_BLOCK * MR * KC_BLOCK, uplane = wgrad_uplane(C, cout);
+    float *V = work, *G = V + 16 * vplane, *U = G + 16 * gplane, *zero = U + 16 * uplane;
+    float *ap = zero + (C > cout ? C : cout);
+    memset(zero, 0, sizeof(float) * (size_t)(C > cout ? C : cout));
+#pragma omp parallel num_threads(nthreads)
+    {
+        int t, nt;
+        team(&t, &nt);
+        for (int b = 0; b < B; ++b) {
+            const float *xb = x + (int64_t)b * H * W * C, *gb = gy + (int64_t)b * H * W * cout;
+            for (int64_t t0 = 0; t0 < T; t0 += cap) {
+                const int m = (int)min64(cap, T - t0);
+                const int i0 = (int)span_edge(m, t, nt), i1 = (int)span_edge(m, t + 1, nt);
+                if (i1 > i0) {
+                    wino_input(xb, H, W, C, wrap, zero, t0 + i0, i1 - i0, tw, V + (int64_t)i0 * C, vplane);
+                    wino_grad_tiles(gb, H, W, cout, zero, t0 + i0, i1 - i0, tw, G, gplane, i0, m);
+                }
+#pragma omp barrier
+                const int add = b > 0 || t0 > 0;
+                for (int xi = t; xi < 16; xi += nt) {
+#if A_BLOCK > 0
+                    gemm_packed_rows(C, cout, m, V + xi * vplane, C, G + xi * gplane, U + xi * uplane, cout, add,
+                                     ap + t * a_floats);
+#else
+                    gemm_packed(C, cout, m, V + xi * vplane, 1, C, G + xi * gplane, U + xi * uplane, cout, add);
+#endif
+                }
+#pragma omp barrier
+            }
+        }
+        wino_weight_output(U, uplane, C, cout, gw);
+    }
+    (void)ap;
+    return 0;
+#else
+    (void)x; (void)gy; (void)B; (void)H; (void)W; (void)C; (void)cout; (void)wrap; (void)gw; (void)block;
+    (void)work; (void)nthreads;
     return 2;
 #endif
 }
