@@ -153,8 +153,8 @@ RULE = [
     ("groups 2", _spec(groups=2), False),
     ("5x5", _spec(k=5, padding=2), False),
     ("float64", _spec(dtype=torch.float64), False),
-    ("16 input channels", _spec(C=16), False),
-    ("16 output channels", _spec(cout=16), False),
+    ("32 input channels", _spec(C=32), False),
+    ("32 output channels", _spec(cout=32), False),
     ("1024 x 512 channels (over the largest product)", _spec(C=1024, cout=512), False),
     ("one column", _spec(H=128, W=1), False),
     ("nothing needs a gradient", _spec(grad=False), False),
@@ -178,14 +178,14 @@ def test_the_rule_needs_autograd_and_no_autocast(monkeypatch):
     assert not wt.applies(*args)
 
 
-@pytest.mark.parametrize("layer,wrap", [(lambda: nn.Conv2d(32, 48, 3, padding=1), 0),
-                                        (lambda: CircularConv2d(32, 48, 3, padding=1), 1)], ids=["Conv2d", "circular"])
+@pytest.mark.parametrize("layer,wrap", [(lambda: nn.Conv2d(64, 72, 3, padding=1), 0),
+                                        (lambda: CircularConv2d(64, 72, 3, padding=1), 1)], ids=["Conv2d", "circular"])
 def test_layers_take_it_in_training_only(layer, wrap, monkeypatch):
     """``unfold_conv.module_conv2d`` (FFC's convolutions) and ``CircularConv2d`` take the Winograd path with autograd
     and give the module's own result; without autograd they do not."""
     torch.manual_seed(5)
     conv = layer()
-    x = torch.randn(1, 32, 16, 16, requires_grad=True)          # 64 tiles
+    x = torch.randn(1, 64, 16, 16, requires_grad=True)          # 64 tiles
     calls = []
     real = wt.conv2d
     monkeypatch.setattr(wt, "conv2d", lambda *a, **k: calls.append(a[3] if len(a) > 3 else k["wrap"]) or real(*a, **k))
@@ -208,12 +208,12 @@ def test_other_builds(build, request):
     rule says no and the layer stays with ``F.conv2d``."""
     request.getfixturevalue(build)
     g = torch.Generator().manual_seed(6)
-    x = torch.randn(2, 40, 8, 15, generator=g, requires_grad=True)   # 64 tiles
-    w = (torch.randn(36, 40, 3, 3, generator=g) * 0.1).requires_grad_()
-    b = torch.randn(36, generator=g, requires_grad=True)
+    x = torch.randn(2, 64, 8, 15, generator=g, requires_grad=True)   # 64 tiles
+    w = (torch.randn(72, 64, 3, 3, generator=g) * 0.05).requires_grad_()
+    b = torch.randn(72, generator=g, requires_grad=True)
     assert wt.applies(x, w) == (build == "avx2_build")
     if build == "avx2_build":
-        gy = torch.randn(2, 36, 8, 15, generator=g)
+        gy = torch.randn(2, 72, 8, 15, generator=g)
         for a, r in zip(_grads(lambda x, w, b: wt.conv2d(x, w, b, 1), x, w, b, gy),
                         _grads(lambda x, w, b: _reference(x, w, b, 1), x, w, b, gy)):
             _close(a, r)
