@@ -725,6 +725,9 @@ int omnidl_gemm(int m, int n, int k, const float *a, int64_t ars, int64_t acs, c
  * Padding: one row of zeros above and below; one column each side of zeros, or the wrapped column (wrap = 1).
  * Rounding differs from the direct sum by a few float32 ulps of the operands' scale (the transforms add and
  * subtract up to 4 terms before the product).
+ * Training (omnidl.nn.winograd_train): the input gradient is the same forward on the filters turned by 180 degrees
+ * with the channel axes swapped (omnidl_wino_pack_flip); the weight gradient is the sum over tiles of
+ * V[xi]^T (A gY A^T)[xi], transformed back by G^T . G (omnidl_wino_weight_grad).
  */
 
 /* floats of omnidl_wino_pack's output for C input and cout output channels (0 on the BLAS build) */
@@ -740,7 +743,8 @@ int64_t omnidl_wino_packed_floats(int C, int cout) {
 #if HAVE_KERNEL
 /* u[xi][j] = (G g_j G^T)[xi] for the filters g_j = src + j * js (nine values; flip: taken in reverse order),
  * j < nr, vectorised over j (the loads are gathers) */
-static inline __attribute__((always_inline)) void wino_filters(const float *src, int64_t js, int flip, int nr, float u[16][NR]) {
+static inline __attribute__((always_inline)) void wino_filters(const float *src, int64_t js, int flip, int nr,
+                                                                float u[16][NR]) {
 #pragma omp simd
     for (int j = 0; j < nr; ++j) {
         const float *g = src + j * js;
@@ -996,9 +1000,9 @@ static void wino_weight_output(const float *U, int64_t plane, int C, int cout, f
             float f[WO_C * 9][WO_CO];                        /* f[ci * 9 + k][l]: filter (o0 + l, c0 + ci) */
             for (int ci = 0; ci < nc; ++ci) {
                 const float *restrict u = U + (int64_t)(c0 + ci) * cout + o0;
-                float *restrict o0_ = f[ci * 9], *restrict o1 = f[ci * 9 + 1], *restrict o2 = f[ci * 9 + 2];
-                float *restrict o3 = f[ci * 9 + 3], *restrict o4 = f[ci * 9 + 4], *restrict o5 = f[ci * 9 + 5];
-                float *restrict o6 = f[ci * 9 + 6], *restrict o7 = f[ci * 9 + 7], *restrict o8 = f[ci * 9 + 8];
+                float *restrict f0 = f[ci * 9], *restrict f1 = f[ci * 9 + 1], *restrict f2 = f[ci * 9 + 2];
+                float *restrict f3 = f[ci * 9 + 3], *restrict f4 = f[ci * 9 + 4], *restrict f5 = f[ci * 9 + 5];
+                float *restrict f6 = f[ci * 9 + 6], *restrict f7 = f[ci * 9 + 7], *restrict f8 = f[ci * 9 + 8];
 #pragma omp simd
                 for (int l = 0; l < no; ++l) {
                     /* gU G, row r: e_r_k */
@@ -1014,9 +1018,15 @@ static void wino_weight_output(const float *U, int64_t plane, int C, int cout, f
                     const float e30 = u[12 * plane + l] + 0.5f * (d1 + d2), e31 = 0.5f * (d1 - d2);
                     const float e32 = 0.5f * (d1 + d2) + u[15 * plane + l];
                     /* G^T (gU G) */
-                    o0_[l] = e00 + 0.5f * (e10 + e20); o1[l] = e01 + 0.5f * (e11 + e21); o2[l] = e02 + 0.5f * (e12 + e22);
-                    o3[l] = 0.5f * (e10 - e20); o4[l] = 0.5f * (e11 - e21); o5[l] = 0.5f * (e12 - e22);
-                    o6[l] = 0.5f * (e10 + e20) + e30; o7[l] = 0.5f * (e11 + e21) + e31; o8[l] = 0.5f * (e12 + e22) + e32;
+                    f0[l] = e00 + 0.5f * (e10 + e20);
+                    f1[l] = e01 + 0.5f * (e11 + e21);
+                    f2[l] = e02 + 0.5f * (e12 + e22);
+                    f3[l] = 0.5f * (e10 - e20);
+                    f4[l] = 0.5f * (e11 - e21);
+                    f5[l] = 0.5f * (e12 - e22);
+                    f6[l] = 0.5f * (e10 + e20) + e30;
+                    f7[l] = 0.5f * (e11 + e21) + e31;
+                    f8[l] = 0.5f * (e12 + e22) + e32;
                 }
             }
             for (int l = 0; l < no; ++l) {
