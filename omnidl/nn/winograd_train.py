@@ -63,7 +63,11 @@ def applies(x: Tensor, weight: Tensor, stride=1, padding=1, dilation=1, groups: 
 def conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, wrap: int) -> Tensor:
     """``F.conv2d(x, weight, bias, padding=1)`` (``wrap=0``) or the same with the columns wrapped horizontally
     (``wrap=1``, :class:`~omnidl.nn.padding.CircularConv2d` with padding 1): ``x (B, C, H, W)``, ``weight (Cout,
-    C, 3, 3)`` -> ``(B, Cout, H, W)`` in ``x``'s memory format; differentiable. Where :func:`applies` holds."""
+    C, 3, 3)`` -> ``(B, Cout, H, W)`` in ``x``'s memory format; differentiable. Where :func:`applies` holds. A bias
+    that is not a float32 CPU vector of ``Cout`` values goes to ``F.conv2d``, which gives its own error."""
+    if bias is not None and not (bias.dtype == torch.float32 and bias.device.type == "cpu"
+                                 and tuple(bias.shape) == (weight.shape[0],)):
+        return _reference(x, weight, bias, wrap)
     return _WinogradConv.apply(x, weight, bias, int(wrap))
 
 

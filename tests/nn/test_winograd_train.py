@@ -110,6 +110,19 @@ def test_scratch_memory_grows_and_is_reused():
             _close(a, r)
 
 
+@pytest.mark.parametrize("bias", [torch.zeros(64, dtype=torch.float64), torch.zeros(63), torch.zeros(1, 64)],
+                         ids=["float64", "63 values", "2-d"])
+def test_a_bad_bias_gets_f_conv2d_s_error(bias):
+    """A bias ``F.conv2d`` rejects is never read as float32 memory: ``F.conv2d`` gives its own error."""
+    x = torch.randn(1, 64, 16, 16, requires_grad=True)
+    w = torch.randn(64, 64, 3, 3, requires_grad=True)
+    assert wt.applies(x, w)
+    with pytest.raises(RuntimeError):
+        wt.conv2d(x, w, bias, 0)
+    with pytest.raises(RuntimeError):
+        F.conv2d(x, w, bias, padding=1)
+
+
 def test_a_nan_input_stays_in_its_outputs_and_gradients():
     """A NaN pixel makes NaN outputs near it (its tiles mix their 4x4 patch) and a NaN weight gradient, as the
     direct convolution does; far outputs stay finite."""
