@@ -150,9 +150,9 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_wino_pack_flip.argtypes = [p, i, i, i, p, i]
     lib.omnidl_wino_pack_flip.restype = i
     lib.omnidl_wino_weight_grad.argtypes = [p, p, i, i, i, i, i, i, p, i, p, i]
+    lib.omnidl_wino_weight_grad.restype = i
     lib.omnidl_wino_weight_grad_floats.argtypes = [i, i, i, i, i, i]
     lib.omnidl_wino_weight_grad_floats.restype = n
-    lib.omnidl_wino_weight_grad.restype = i
     lib.omnidl_lstm_layer.argtypes = [n, i, n, p, p, p, p, p, p, p, i]
     lib.omnidl_lstm_layer.restype = i
     lib.omnidl_lstm_padded_width.argtypes = [n]

@@ -41,8 +41,7 @@ def wrap_mode(x: Tensor, conv: nn.Module) -> int | None:
             and conv.in_channels * conv.out_channels <= MAX_CHANNEL_PRODUCT
             and x.dtype == torch.float32 and x.device.type == "cpu"
             and x.is_contiguous(memory_format=torch.channels_last) and x.shape[-1] >= 2
-            and x.shape[0] * ((x.shape[-2] + 1) // 2) * ((x.shape[-1] + 1) // 2)
-            >= max(conv.in_channels, conv.out_channels) // 4 + 16):
+            and tiles(x) >= max(conv.in_channels, conv.out_channels) // 4 + 16):
         return None
     from .padding import CircularConv2d   # here: padding imports unfold_conv, which imports winograd_train and this
     if type(conv) is CircularConv2d:
@@ -50,6 +49,11 @@ def wrap_mode(x: Tensor, conv: nn.Module) -> int | None:
     if type(conv) is nn.Conv2d:
         return 0 if tuple(conv.padding) == (1, 1) and conv.padding_mode == "zeros" else None
     return None
+
+
+def tiles(x: Tensor) -> int:
+    """The 2x2 output tiles of a stride-1 3x3 convolution with padding 1 of ``x (B, C, H, W)``, over the batch."""
+    return x.shape[0] * ((x.shape[-2] + 1) // 2) * ((x.shape[-1] + 1) // 2)
 
 
 def pack(lib, weight: Tensor) -> Tensor | None:

@@ -34,16 +34,15 @@ CL = torch.channels_last
 ENABLED = True
 #: the fewest input and output channels taken (32 on 64x128 ran 1.06-1.14x oneDNN's forward + backward)
 MIN_CHANNELS = 64
-#: the largest ``in_channels * out_channels`` taken
-MAX_CHANNEL_PRODUCT = 512 * 512
 #: the fewest tiles (2x2 outputs, over the batch) taken
 MIN_TILES = 64
 
 
 def applies(x: Tensor, weight: Tensor, stride=1, padding=1, dilation=1, groups: int = 1) -> bool:
-    """Whether :func:`conv2d` computes this convolution with autograd: ``padding`` is the zero padding given to
-    ``F.conv2d``, ``(1, 1)`` (or, for a horizontal wrap, the caller's ``(1, 0)`` after its own wrap of one column
-    each side: it passes ``wrap=1`` to :func:`conv2d` and the unwrapped map)."""
+    """Whether :func:`conv2d` computes this convolution with autograd: ``padding`` is the padding given to
+    ``F.conv2d``, which must be 1 (a :class:`~omnidl.nn.padding.CircularConv2d` with wrap padding 1 passes 1 here
+    and ``wrap=1`` to :func:`conv2d`, with the unwrapped map). At most :data:`omnidl.nn.winograd.MAX_CHANNEL_PRODUCT`
+    channel pairs, as the inference path."""
     if not (ENABLED and torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu") and x.dim() == 4
             and weight.dim() == 4 and tuple(weight.shape[-2:]) == (3, 3) and groups == 1
             and not isinstance(padding, str) and _pair(stride, "stride") == (1, 1)
@@ -51,10 +50,9 @@ def applies(x: Tensor, weight: Tensor, stride=1, padding=1, dilation=1, groups: 
             and x.dtype == torch.float32 and weight.dtype == torch.float32 and weight.device.type == "cpu"
             and (x.requires_grad or weight.requires_grad)):
         return False
-    B, C, H, W = x.shape
-    cout = weight.shape[0]
-    if not (C == weight.shape[1] and MIN_CHANNELS <= min(C, cout) and C * cout <= MAX_CHANNEL_PRODUCT
-            and B * ((H + 1) // 2) * ((W + 1) // 2) >= MIN_TILES and W >= 2):
+    C, cout = x.shape[1], weight.shape[0]
+    if not (C == weight.shape[1] and MIN_CHANNELS <= min(C, cout) and C * cout <= winograd.MAX_CHANNEL_PRODUCT
+            and winograd.tiles(x) >= MIN_TILES and x.shape[-1] >= 2):
         return False
     lib = native.library()
     return lib is not None and lib.omnidl_wino_packed_floats(1, 1) > 0 and not capturing()
