@@ -66,9 +66,9 @@ class HorizonFitOptions:
 
 
 def _principal(v: Tensor, w: Tensor, smallest: bool) -> Tensor:
-    """Eigenvector of the weighted scatter ``sum w v v^T`` (largest or smallest eigenvalue)."""
-    M = torch.einsum("n,ni,nj->ij", w, v, v)
-    _, vecs = torch.linalg.eigh(M)
+    """Eigenvector of the weighted scatter ``sum w v v^T`` (largest or smallest eigenvalue) of ``v (N, 3)``,
+    ``w (N,)``; a subset is given by zero weights (two ops instead of a boolean gather of ``v`` and ``w``)."""
+    _, vecs = torch.linalg.eigh((v * w[:, None]).T @ v)
     return vecs[:, 0] if smallest else vecs[:, -1]
 
 
@@ -87,8 +87,7 @@ def _vertical(dirs: Tensor, vp: Tensor, area: Tensor, o: HorizonFitOptions, gen:
     score = (inl * cw).sum(-1)
     g = hyp[score.argmax()]
     for _ in range(2):
-        m = (cv @ g).abs() > cos_in
-        g = _principal(cv[m], cw[m], smallest=False)
+        g = _principal(cv, cw * ((cv @ g).abs() > cos_in), smallest=False)
     # sign: the zenith peak is the heavier one
     w_all = vp * area
     s = dirs @ g
@@ -134,7 +133,7 @@ def _plane(dirs: Tensor, hl: Tensor, area: Tensor, g: Tensor, g_ok: bool, pix: f
         m = (dirs @ n).abs() < rband
         if int(m.sum()) < 3:
             break
-        n_new = _principal(dirs[m], w_all[m], smallest=True)
+        n_new = _principal(dirs, w_all * m, smallest=True)
         n = n_new * (1.0 if float(n_new @ n) >= 0 else -1.0)
     if float(n @ g) < 0:
         n = -n

@@ -1,7 +1,8 @@
 """omnidl's native CPU kernels, built on first use and cached: the fixed-offset convolution (``csrc/fixed_conv.c``),
 the batch-1 LSTM recurrence (``csrc/lstm.c``), PReLU's backward (``csrc/prelu.c``), the adjoint of bilinear
-up-sampling (``csrc/upsample.c``), the thin 1x1 expansion with batch norm (``csrc/expansion.c``) and a panorama's
-wrap into channels-last memory and back (``csrc/wrap_layout.c``), one shared library.
+up-sampling (``csrc/upsample.c``), the thin 1x1 expansion with batch norm (``csrc/expansion.c``), a panorama's
+wrap into channels-last memory and back (``csrc/wrap_layout.c``) and the photometric gyroscopes' reads of a
+panorama at directions with their Gauss-Newton sums (``csrc/sphere_terms.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -10,7 +11,7 @@ competing for the cores with spinning threads). On x86-64 with AVX-512 (or AVX2/
 register-blocked kernel; elsewhere they call the BLAS ``sgemm_`` that PyTorch's CPU library exports (MKL in
 the x86 wheels).
 
-Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native -fopenmp`` (without ``-fopenmp`` where
+Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native -fno-math-errno -fno-trapping-math -fopenmp`` (without ``-fopenmp`` where
 the compiler lacks it: then single-threaded; plus ``-mprefer-vector-width=512`` on AVX-512 CPUs), linked against ``libtorch_cpu``. The shared library is cached
 under ``$OMNIDL_CACHE_DIR/native`` (default ``$XDG_CACHE_HOME/omnidl/native``, else ``~/.cache/omnidl/native``),
 named by a hash of the source, compiler, flags, torch build and CPU, and written atomically (compiled to a
@@ -40,7 +41,7 @@ import torch
 SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 #: every source compiled into the library
 SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c",
-                                                                 "expansion.c", "wrap_layout.c"))
+                                                                 "expansion.c", "wrap_layout.c", "sphere_terms.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -83,7 +84,11 @@ def _wide_vectors() -> list[str]:
     return ["-mprefer-vector-width=512"] if " avx512f" in _cpu_id() else []
 
 
-FLAGS = ["-O3", "-march=native", *_wide_vectors(), "-std=c11", "-fPIC", "-shared"]
+#: ``-fno-math-errno -fno-trapping-math``: no kernel reads errno or floating-point traps, and a square root that may
+#: set errno, or a comparison that may trap, is a branch that keeps a loop scalar (the gyroscopes' point loops ran
+#: 6x slower); every result is the same
+FLAGS = ["-O3", "-march=native", *_wide_vectors(), "-fno-math-errno", "-fno-trapping-math", "-std=c11", "-fPIC",
+         "-shared"]
 
 
 def _build(cc: list[str], torch_lib: str) -> Path:
@@ -167,6 +172,15 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_expand_sums.restype = i
     lib.omnidl_expand_input_grad.argtypes = [p, p, n, i, n, p, p, i, i, p, i, p, p, p, p, i]
     lib.omnidl_expand_input_grad.restype = i
+    f = ctypes.c_float
+    lib.omnidl_sphere_read.argtypes = [p, n, i, i, i, p, p, p, n, p, i]
+    lib.omnidl_sphere_read.restype = i
+    lib.omnidl_pvg_terms.argtypes = [p, n, i, i, p, p, i, p, n, i, f, p, i]
+    lib.omnidl_pvg_terms.restype = i
+    lib.omnidl_pvg_stage.argtypes = [p, n, i, i, p, p, i, p, n, i, f, i, f, p, i]
+    lib.omnidl_pvg_stage.restype = i
+    lib.omnidl_mpp_yaw.argtypes = [p, n, i, p, i, p, n, i, i, i, f, p, p]
+    lib.omnidl_mpp_yaw.restype = i
     for name in ("omnidl_wrap_to_nhwc", "omnidl_wrap_from_nhwc"):
         getattr(lib, name).argtypes = [p, n, n, n, n, n, n, p, i]
         getattr(lib, name).restype = i
@@ -198,8 +212,9 @@ def library() -> ctypes.CDLL | None:
         if lib is None and reason != DISABLED:
             warnings.warn(f"omnidl: the native CPU kernels are unavailable ({reason}); ProjectedConv2d runs its "
                           "slower portable path on CPU; LSTMs, the products of weight-heavy convolutions, thin 1x1 "
-                          "expansions with batch norm, the backwards of PReLU and of up-sampling and the wrap of "
-                          "task heads run on PyTorch's own ops", RuntimeWarning, stacklevel=2)
+                          "expansions with batch norm, the backwards of PReLU and of up-sampling, the wrap of "
+                          "task heads and the photometric gyroscopes' iterations run on PyTorch's own ops",
+                          RuntimeWarning, stacklevel=2)
         _STATE.update(lib=lib, path=path, reason=reason)
         return lib
 

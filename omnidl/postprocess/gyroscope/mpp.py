@@ -30,7 +30,8 @@ from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.geometry.panorama import sample_panorama
 
 from .icosahedron import icosahedron_vertices
-from .photometric import SphereImage, apply_update, blur, rodrigues, rotation_jacobian, to_gray
+from . import native_terms
+from .photometric import SphereImage, apply_update, blur_fast, rodrigues, rotation_jacobian, to_gray
 
 
 def abs_zn(I: Tensor) -> Tensor:
@@ -44,13 +45,14 @@ def mpp_samples(image: Tensor, level: int = 3, prefilter: bool = True) -> tuple[
     """Normalised grey levels of ``image (B, C, H, W)`` at the level-``level`` vertices.
 
     Returns ``(vertices (N, 3), weights (B, N))``. ``prefilter`` blurs the image to about the vertex
-    spacing first (anti-aliasing; libPeR samples bilinearly without it).
+    spacing first (anti-aliasing; libPeR samples bilinearly without it), with :func:`blur_fast` (both of
+    :func:`mpp_yaw`'s paths and the benchmark's baseline read these samples).
     """
     gray = to_gray(image)
     X = icosahedron_vertices(level, gray.dtype, gray.device)
     if prefilter:
         spacing = 1.1 / (2 ** level)  # ~ edge angle of the subdivided mesh (rad)
-        gray = blur(gray, 0.5 * spacing * gray.shape[-1] / (2 * math.pi))
+        gray = blur_fast(gray, 0.5 * spacing * gray.shape[-1] / (2 * math.pi))
     return X, abs_zn(sample_panorama(gray, X)[:, 0])
 
 
@@ -281,7 +283,8 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
 
 def _mpp_fast(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambda_g: float, tries: int, max_iter: int,
               tol: float, grid_height: int) -> MPPResult:
-    """The Gauss-Newton loop of :func:`mpp_yaw` in ~35 ops per iteration (same arithmetic up to rounding).
+    """The Gauss-Newton loop of :func:`mpp_yaw` in one native call (:func:`native_terms.mpp_yaw_loop`), else in
+    ~35 ops per iteration (:func:`_mpp_loop`); same arithmetic up to rounding.
 
     ``R(theta) = E(theta) R0`` with ``E = I + sin K + (1 - cos) K^2`` (Rodrigues, ``K = [a]x``), so the rotated
     centres ``p = X @ R`` and the Jacobian directions ``D = (X x a) @ R`` (``J = grad . D``) are
@@ -291,9 +294,7 @@ def _mpp_fast(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambd
     T = max(1, int(tries))
     theta = (torch.arange(T, dtype=dtype, device=dev) * (2 * math.pi / T)).expand(B, T).clone()
     theta = torch.remainder(theta + math.pi, 2 * math.pi) - math.pi
-    best_cost = torch.full((B, T), float("inf"), dtype=dtype, device=dev)
-    best_theta = theta.clone()
-    table = SphereImage(mpp_table_fast(X, Ic, lambda_g, grid_height))
+    table = mpp_table_fast(X, Ic, lambda_g, grid_height)
     M = X.shape[0]
     zero = torch.zeros_like(a[:, 0])
     K = torch.stack([zero, -a[:, 2], a[:, 1], a[:, 2], zero, -a[:, 0], -a[:, 1], a[:, 0], zero], -1).view(B, 3, 3)
@@ -302,6 +303,25 @@ def _mpp_fast(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambd
     # (B, 3, 6M): for each of P0, P1, P2 the x, y, z rows of p, then those of D
     basis = torch.stack([(XC @ m).view(B, 2, M, 3).permute(0, 1, 3, 2) for m in (R0, KR0, K2R0)], 1)
     basis = basis.reshape(B, 3, 6 * M)
+    if native_terms.applies(table, basis, G_ref, theta):  # the loop below in one call
+        best_theta, best_cost, it = native_terms.mpp_yaw_loop(table, basis, G_ref, theta, max_iter, tol)
+    else:
+        best_theta, best_cost, it = _mpp_loop(SphereImage(table), basis, G_ref, theta, max_iter, tol)
+    k = best_cost.argmin(-1)
+    yaw = best_theta.gather(1, k[:, None])[:, 0]
+    yaw = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
+    R = rodrigues(yaw[:, None] * a) @ R0
+    return MPPResult(R, yaw, best_cost.gather(1, k[:, None])[:, 0], it)
+
+
+def _mpp_loop(table: SphereImage, basis: Tensor, G_ref: Tensor, theta: Tensor, max_iter: int,
+              tol: float) -> tuple[Tensor, Tensor, int]:
+    """:func:`_mpp_fast`'s iterations in tensor ops (:func:`native_terms.mpp_yaw_loop`'s arguments and results)."""
+    B, T = theta.shape
+    M = basis.shape[-1] // 6
+    dtype, dev = theta.dtype, theta.device
+    best_cost = torch.full((B, T), float("inf"), dtype=dtype, device=dev)
+    best_theta = theta.clone()
     G_ref = G_ref.unsqueeze(1)  # (B, 1, M)
     # buffers written in place every iteration, and their views, made once (a view costs as much as a small op)
     k = torch.ones(B, T, 3, dtype=dtype, device=dev)  # [1, sin theta, 1 - cos theta] per start
@@ -330,8 +350,4 @@ def _mpp_fast(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambd
         theta = theta - q
         if bool(q.abs().max() < tol):
             break
-    k = best_cost.argmin(-1)
-    yaw = best_theta.gather(1, k[:, None])[:, 0]
-    yaw = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
-    R = rodrigues(yaw[:, None] * a) @ R0
-    return MPPResult(R, yaw, best_cost.gather(1, k[:, None])[:, 0], it)
+    return best_theta, best_cost, it

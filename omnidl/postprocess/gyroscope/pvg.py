@@ -23,6 +23,7 @@ from torch import Tensor
 
 from omnidl.geometry.panorama import sample_panorama
 
+from . import native_terms
 from .icosahedron import icosahedron_vertices
 from .photometric import (SphereImage, apply_update, blur, blur_fast, damped_step, gauss_newton_step, rodrigues,
                           rotation_jacobian, to_gray)
@@ -218,23 +219,36 @@ def pvg_refine(current: Tensor, reference: Tensor, R_init: Tensor | None = None,
 def _pvg_fast(cur: Tensor, ref_values: Tensor, X: Tensor, R: Tensor, dofs: tuple[bool, ...], max_iter: int, tol: float,
               blur_px: Sequence[float]) -> PVGResult:
     """The Gauss-Newton loop of :func:`pvg_refine` on :class:`PVGTerms` (same arithmetic up to rounding):
-    ``J^T J = R M R^T``, ``J^T e = R c`` with ``[M c; c^T e^T e] = T T^T``, ``T = PVGTerms(...)(...)``."""
+    ``J^T J = R M R^T``, ``J^T e = R c`` with ``[M c; c^T e^T e] = T T^T``, ``T = PVGTerms(...)(...)``; the sums
+    ``T T^T`` in one native pass where it applies (:func:`native_terms.pvg_normal_equations`), and with all three axes
+    free a whole stage in one native call (:func:`native_terms.pvg_stage`)."""
     B, dtype, dev = cur.shape[0], cur.dtype, cur.device
     sel = [i for i, d in enumerate(dofs) if d]
     all_dofs = len(sel) == 3
     eye9 = 1e-9 * torch.eye(3, dtype=dtype, device=dev)  # damped_step's damping (all three axes)
-    terms = PVGTerms(X, B)
+    use_native = native_terms.applies(cur, ref_values, X)
+    terms = None if use_native else PVGTerms(X, B)
     Q = torch.empty(B, 4, 4, dtype=dtype, device=dev)
-    QT = terms.out.transpose(1, 2)
+    QT = None if use_native else terms.out.transpose(1, 2)
     M, c = Q[:, :3, :3], Q[:, :3, 3]
     diag = torch.diagonal(M, dim1=-2, dim2=-1)
     it_total = 0
     for s, sigma in enumerate(blur_px):
-        img = SphereImage(blur_fast(cur, sigma))
+        blurred = blur_fast(cur, sigma)
+        img = None if use_native else SphereImage(blurred)
         I_ref = ref_values[s]
+        h = math.pi / blurred.shape[-2]
+        if use_native and all_dofs:  # the loop below in one call
+            R, Qd, it = native_terms.pvg_stage(blurred, R, X, I_ref, h, max_iter, tol)
+            Q.copy_(Qd)
+            it_total += it
+            continue
         for _ in range(max_iter):
             it_total += 1
-            torch.bmm(terms(img, R, I_ref), QT, out=Q)  # [U U^T, U e; e U^T, e e]
+            if use_native:  # [U U^T, U e; e U^T, e e] in one pass
+                Q.copy_(native_terms.pvg_normal_equations(blurred, R, X, I_ref, h))
+            else:
+                torch.bmm(terms(img, R, I_ref, h), QT, out=Q)
             if all_dofs:  # A + l I = R (M + l I) R.T (trace-invariant damping): solve in the frame of the points
                 scale = diag.mean(-1, keepdim=True).clamp_min_(1e-30)
                 y = torch.linalg.solve(torch.addcmul(M, scale.unsqueeze(-1), eye9), c)  # dx = -R y
