@@ -17,10 +17,11 @@ from torch import Tensor, nn
 from omnidl.cameras.base import Camera
 from omnidl.cameras.resolve import resolve_camera
 
+from . import projected_taps
+from .fused import fused_conv2d, fused_supported
 from .offsets import Pair, compute_sampling
 from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
 from .tiled import tiled_conv2d, tiled_supported
-from .fused import fused_conv2d, fused_supported
 
 Backend = Literal["auto", "fast", "torchvision"]
 
@@ -212,11 +213,14 @@ class ProjectedConv2d(nn.Conv2d):
                                        self.dilation, wrap=key[6])
 
     def _fast(self, x: Tensor, weight: Tensor, bias: Tensor | None, key: tuple) -> Tensor:
-        """The fast backend on CPU float32: the native fused gather+product kernel (:mod:`.fused`), else
-        (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and whenever
+        """The fast backend on CPU float32: with few output channels and no autograd graph the product onto the taps
+        and a sampled sum (:mod:`.projected_taps`, CPU float32/float64), else the native fused gather+product kernel (:mod:`.fused`),
+        else (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and whenever
         ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`)."""
         plan = get_plan(key, x.device, x.dtype)
         if self.chunk_positions is None:
+            if projected_taps.pays(x, weight, bias, plan):
+                return projected_taps.projected_taps_conv2d(x, weight, bias, plan)
             if fused_supported(x, weight, plan):
                 return fused_conv2d(x, weight, bias, plan)
             if tiled_supported(x, weight):
