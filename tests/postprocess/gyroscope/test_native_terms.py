@@ -119,6 +119,16 @@ def test_applies_only_to_float32_cpu(tensor_ops):
     assert not native_terms.applies(torch.zeros(2))
 
 
+def test_without_the_library_the_solvers_keep_their_tensor_ops(monkeypatch):
+    R, ref, cur = _frames(1)
+    fast = pvg_refine(cur, ref, R, level=3, max_iter=3)
+    monkeypatch.setattr(native, "library", lambda: None)
+    assert not native_terms.applies(torch.zeros(2))
+    slow = pvg_refine(cur, ref, R, level=3, max_iter=3)
+    torch.testing.assert_close(fast.rotation, slow.rotation, rtol=0, atol=1e-5)
+    assert mpp_yaw(cur, ref, R, level=2, tries=2).iterations > 0
+
+
 def test_applies_to_float32_not_float64():
     assert native_terms.applies(torch.zeros(2))
     assert not native_terms.applies(torch.zeros(2), torch.zeros(2, dtype=torch.float64))
