@@ -12,8 +12,8 @@ points; on a 2-core machine each op costs 10-25 us of dispatch and memory passes
 * :func:`mpp_yaw_loop` -- the whole yaw loop of ``_mpp_fast`` (points and Jacobian directions from the
   three basis terms, four-channel table reads, ``J.J``, ``J.e``, ``e.e``, the step, the best angle per start).
 
-Reads (:func:`sphere_read`) are :meth:`SphereImage.read_grid`'s (``grid_sample`` of the wrapped image) with a polynomial ``atan2``
-(within a few float32 ulps of PyTorch's); sums in double. They run for float32 CPU tensors with the native
+Reads (:func:`sphere_read`) are :meth:`SphereImage.read_grid`'s (``grid_sample`` of the wrapped image) with a
+polynomial ``atan2`` (within a few float32 ulps of PyTorch's); sums in double. They run for float32 CPU tensors with the native
 library built (:mod:`omnidl.nn.native`), not while a graph is captured; elsewhere (float64, CUDA,
 ``OMNIDL_NATIVE=0``) the solvers keep their tensor ops. Results equal those ops' to float32 rounding
 (``tests/postprocess/gyroscope/test_native_terms.py``).
@@ -36,6 +36,13 @@ def applies(*tensors: Tensor) -> bool:
             and not capturing() and native.library() is not None)
 
 
+def _check(where: str, **tensors: Tensor) -> None:
+    """The kernels read float32 CPU memory: anything else is an error that names the operand."""
+    for name, t in tensors.items():
+        if t.device.type != "cpu" or t.dtype != torch.float32:
+            raise ValueError(f"{where}: {name} must be a float32 CPU tensor, got {t.dtype} on {t.device}")
+
+
 def _rows(t: Tensor, B: int, n: int, name: str) -> tuple[Tensor, int]:
     """``t (B|1, n)`` as contiguous rows and their stride (0 for one row shared by all ``B``)."""
     if t.dim() != 2 or t.shape[-1] != n or t.shape[0] not in (1, B):
@@ -50,6 +57,7 @@ def sphere_read(image: Tensor, directions: Tensor) -> Tensor:
     if image.dim() != 3 or directions.dim() != 2 or directions.shape[-1] != 3:
         raise ValueError(f"sphere_read: expected image (C, H, W) and directions (M, 3), got {tuple(image.shape)} "
                          f"and {tuple(directions.shape)}")
+    _check("sphere_read", image=image, directions=directions)
     img = image.contiguous()
     C, H, W = img.shape
     x, y, z = (d.contiguous() for d in directions.unbind(-1))
@@ -65,6 +73,7 @@ def _pvg_operands(image: Tensor, X: Tensor, I_ref: Tensor) -> tuple[Tensor, Tens
         raise ValueError(f"PVG: image must have shape (B, 1, H, W), got {tuple(image.shape)}")
     if X.dim() != 2 or X.shape[1] != 3:
         raise ValueError(f"PVG: vertices must have shape (N, 3), got {tuple(X.shape)}")
+    _check("PVG", image=image, vertices=X, I_ref=I_ref)
     ref, ref_stride = _rows(I_ref, image.shape[0], X.shape[0], "I_ref")
     return image.contiguous(), X.contiguous(), ref, ref_stride
 
@@ -75,6 +84,7 @@ def pvg_normal_equations(image: Tensor, R: Tensor, X: Tensor, I_ref: Tensor, h: 
     ``R (B, 3, 3)``, ``X (N, 3)``, ``I_ref (B|1, N)``; ``h``: the central differences' step (radians)."""
     img, Xc, ref, ref_stride = _pvg_operands(image, X, I_ref)
     B, _, H, W = img.shape
+    _check("PVG", R=R)
     Rc = R.expand(B, 3, 3).contiguous()
     Q = torch.empty(B, 4, 4, dtype=torch.float64)
     native.library().omnidl_pvg_terms(img.data_ptr(), H * W, H, W, Rc.data_ptr(), Xc.data_ptr(), Xc.shape[0],
@@ -90,6 +100,7 @@ def pvg_stage(image: Tensor, R: Tensor, X: Tensor, I_ref: Tensor, h: float, max_
     float64 and the number of iterations run."""
     img, Xc, ref, ref_stride = _pvg_operands(image, X, I_ref)
     B, _, H, W = img.shape
+    _check("PVG", R=R)
     Rc = R.expand(B, 3, 3).contiguous().clone()
     Q = torch.zeros(B, 4, 4, dtype=torch.float64)
     it = native.library().omnidl_pvg_stage(img.data_ptr(), H * W, H, W, Rc.data_ptr(), Xc.data_ptr(), Xc.shape[0],
@@ -112,6 +123,7 @@ def mpp_yaw_loop(table: Tensor, basis: Tensor, G_ref: Tensor, theta: Tensor, max
         raise ValueError(f"mpp_yaw_loop: table must have shape ({B}, 4, h, 2h), got {tuple(table.shape)}")
     if basis.shape != (B, 3, 6 * M):
         raise ValueError(f"mpp_yaw_loop: basis must have shape ({B}, 3, 6M), got {tuple(basis.shape)}")
+    _check("mpp_yaw_loop", table=table, basis=basis, G_ref=G_ref, theta=theta)
     tab, bas = table.contiguous(), basis.contiguous()
     ref, ref_stride = _rows(G_ref, B, M, "G_ref")
     best = theta.contiguous().clone()
