@@ -56,7 +56,7 @@ def _sum_plan(plan: SamplingPlan) -> SamplingPlan:
 
 def projected_taps_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: SamplingPlan) -> Tensor:
     """``x (B, C, H, W)`` convolved with ``weight (Cout, C, kh, kw)`` at ``plan``'s taps -> ``(B, Cout, Ho, Wo)`` in
-    ``x``'s memory format (built from differentiable ops, but :func:`pays` keeps it to calls without a graph)."""
+    ``x``'s memory format; for calls without an autograd graph (:func:`pays`: the products are written in place)."""
     B, C, H, W = x.shape
     cout, K = weight.shape[0], plan.taps
     Ho, Wo = plan.out_hw
@@ -65,10 +65,11 @@ def projected_taps_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: 
     corner_w = plan.weight.view(-1, 4 * K).to(x.dtype)
     taps = weight.permute(1, 2, 3, 0).reshape(C, K * cout)  # column k * Cout + o = W_k[o]
     pixels = x.permute(0, 2, 3, 1).reshape(B, H * W, C)  # a view for channels-last input
-    zero = x.new_zeros(1, cout)
+    z = x.new_empty(H * W * K + 1, cout)  # the taps' products of one image, then a row of zeros
+    z[-1] = 0
     outs = []
     for b in range(B):
-        z = torch.cat([(pixels[b] @ taps).view(H * W * K, cout), zero])  # (H·W·K + 1, Cout), last row zeros
+        torch.mm(pixels[b], taps, out=z[:-1].view(H * W, K * cout))  # no graph (see pays): written in place
         outs.append(F.embedding_bag(rows, z, per_sample_weights=corner_w, mode="sum"))
     y = torch.stack(outs) if B > 1 else outs[0].unsqueeze(0)  # (B, Ho·Wo, Cout)
     if bias is not None:

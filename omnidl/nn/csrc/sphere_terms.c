@@ -63,14 +63,19 @@ static inline void sphere_corners(float x, float y, float z, int H, int W, float
     *r1 = yi + 1 < H ? yi + 1 : H - 1;
 }
 
+/* the bilinear value of an image (rows W floats long) at the corners of sphere_corners */
+static inline float bilinear(const float *img, int W, int r0, int r1, int c0, int c1, float fy, float fx) {
+    const float *a = img + (int64_t)r0 * W, *b = img + (int64_t)r1 * W;
+    const float top = a[c0] + fx * (a[c1] - a[c0]), bottom = b[c0] + fx * (b[c1] - b[c0]);
+    return top + fy * (bottom - top);
+}
+
 /* image (H, W) at direction (x, y, z); NaN when a component is not finite */
 static inline float sphere_read(const float *img, int H, int W, float sx, float ox, float x, float y, float z) {
     int r0, r1, c0, c1;
     float fy, fx;
     sphere_corners(x, y, z, H, W, sx, ox, &r0, &r1, &c0, &c1, &fy, &fx);
-    const float *a = img + (int64_t)r0 * W, *b = img + (int64_t)r1 * W;
-    const float top = a[c0] + fx * (a[c1] - a[c0]), bottom = b[c0] + fx * (b[c1] - b[c0]);
-    return top + fy * (bottom - top) + ((x - x) + (y - y) + (z - z));
+    return bilinear(img, W, r0, r1, c0, c1, fy, fx) + ((x - x) + (y - y) + (z - z));
 }
 
 static void scale_offset(int W, float *sx, float *ox) {
@@ -254,11 +259,7 @@ int omnidl_mpp_yaw(const float *table, int64_t table_stride, int h, const float 
                     sphere_corners(q[0], q[1], q[2], h, W, sx, ox, &r0, &r1, &c0, &c1, &fy, &fx);
                     const float nan = (q[0] - q[0]) + (q[1] - q[1]) + (q[2] - q[2]);
                     float v[4];
-                    for (int c = 0; c < 4; ++c) {
-                        const float *a = tb + c * plane + (int64_t)r0 * W, *d = tb + c * plane + (int64_t)r1 * W;
-                        const float top = a[c0] + fx * (a[c1] - a[c0]), bottom = d[c0] + fx * (d[c1] - d[c0]);
-                        v[c] = top + fy * (bottom - top) + nan;
-                    }
+                    for (int c = 0; c < 4; ++c) v[c] = bilinear(tb + c * plane, W, r0, r1, c0, c1, fy, fx) + nan;
                     const double J = v[1] * q[3] + v[2] * q[4] + v[3] * q[5], e = v[0] - g[m];
                     jj += J * J;
                     je += J * e;
