@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .sampling import SamplingPlan
+from .sampling import SamplingPlan, _is_channels_last
 
 #: ``False``: the layer keeps its other paths (benchmarks' in-process A/B, tests)
 ENABLED = True
@@ -62,7 +62,7 @@ def projected_taps_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: 
     Ho, Wo = plan.out_hw
     sums = _sum_plan(plan)
     rows = sums.idx.view(-1, 4 * K)
-    corner_w = plan.weight.view(-1, 4 * K).to(x.dtype)
+    corner_w = plan.weight.view(-1, 4 * K)  # the plan is built for x's dtype
     taps = weight.permute(1, 2, 3, 0).reshape(C, K * cout)  # column k * Cout + o = W_k[o]
     pixels = x.permute(0, 2, 3, 1).reshape(B, H * W, C)  # a view for channels-last input
     z = x.new_empty(H * W * K + 1, cout)  # the taps' products of one image, then a row of zeros
@@ -75,7 +75,7 @@ def projected_taps_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: 
     if bias is not None:
         y = y + bias
     y = y.view(B, Ho, Wo, cout).permute(0, 3, 1, 2)  # channels-last memory
-    return y if x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous() else y.contiguous()
+    return y if _is_channels_last(x) else y.contiguous()  # as the layer's other paths
 
 
 __all__ = ["ENABLED", "pays", "projected_taps_conv2d"]
