@@ -17,6 +17,7 @@ from omnidl.nn.threads import limit_threads
 from . import materials as M
 from .layout import layout_ground_truth
 from .raycast import FLOOR, WALL, box_normals, cast_boxes, cast_room, column_rays, group_spheres
+from . import native_shade
 from .scene import Scene
 from .tiles import ray_tiles, tile_batches, tile_mask
 
@@ -120,7 +121,7 @@ def _render(scene: Scene, camera, pose: np.ndarray, layout: bool, dtype: torch.d
     rig = 0.0 if o.shape[0] == 1 or not bool(valid.any()) else \
         float(torch.where(valid, (o - centre).norm(dim=-1), -math.inf).max())
 
-    n, n_dec = scene.num_walls, len(scene.decals)
+    n = scene.num_walls
     poly = torch.as_tensor(scene.polygon, dtype=dtype, device=device)
     columns = column_rays(o, d, (H, W), (o_t, d_t))
     room = cast_room(o, d, poly, scene.height, grid=(H, W), columns=columns, components=(o_t, d_t))
@@ -138,11 +139,53 @@ def _render(scene: Scene, camera, pose: np.ndarray, layout: bool, dtype: torch.d
     t, box_id = cast_boxes(o, d, boxes, batches, room.t, centre, rig, candidates=candidates)
     hit = valid & torch.isfinite(t)
     t = torch.where(hit, t, torch.zeros_like(t))
-    is_box = box_id >= 0
     # component-major (3, P) from here on: 3-vector products are several times faster than on (P, 3)
-    # rows and give the same bits (the same operations in the same order on each element)
-    point = torch.addcmul(o_t, t[None], d_t)                                   # (3, P)
+    # rows and give the same bits (the same operations in the same order on each element). Contiguous rows
+    # also for non-central rays (o_t is then a transposed view): the BLAS sums the shading's products over a
+    # transposed operand in another order, and native_shade sums them as over contiguous rows
+    point = torch.addcmul(o_t, t[None], d_t).contiguous()                      # (3, P)
+    R = torch.as_tensor(pose[:3, :3], dtype=dtype, device=device)
+    if not shadows and native_shade.applies(point, d_t):
+        # one native pass per pixel: the same labels, surfaces and texture cells as _surfaces
+        tables = _native_tables(scene, boxes)
+        image, sem, inst, normal_cam = native_shade.surface_shade(point, d_t, hit, box_id, room.kind, room.wall,
+                                                                  room.s, tables, R)
+    else:
+        image, sem, inst, normal_cam = _surfaces(scene, room, box_id, hit, point, d_t, boxes, groups, R, shadows)
 
+    out = {
+        "image": image.reshape(3, H, W).to(torch.float32),
+        "depth": t.reshape(1, H, W).to(torch.float32),
+        "semantic": sem.reshape(H, W),
+        "instance": inst.reshape(H, W),
+        "normal": normal_cam.reshape(3, H, W).to(torch.float32),
+        "valid": hit.reshape(H, W),
+    }
+    meta = {"camera": camera.to_config(), "manhattan": bool(scene.manhattan), "num_walls": int(n),
+            "rig_radius": float(rig), "scene_seed": int(scene.seed)}
+    if layout:
+        kind_map = (room.kind * hit).reshape(H, W)
+        out["layout_seg"] = kind_map
+        out.update(layout_ground_truth(scene, camera, pose, kind_map, room.wall.reshape(H, W),
+                                       vertical_columns=columns is not None))
+        r_up = upright_rotation(torch.as_tensor(pose[:3, :3], dtype=torch.float64))
+        out["pose"] = torch.as_tensor(pose, dtype=torch.float32)
+        out["rotation"] = torch.as_tensor(r_up, dtype=torch.float32)
+        out["horizon_normal"] = torch.as_tensor(pose[:3, :3].T @ np.array([0.0, 0.0, 1.0]), dtype=torch.float32)
+        out["camera_height"] = torch.tensor(float(pose[2, 3]), dtype=torch.float32)
+        out["ceiling_height"] = torch.tensor(float(scene.height), dtype=torch.float32)
+    out["meta"] = meta
+    return out
+
+
+def _surfaces(scene: Scene, room, box_id: Tensor, hit: Tensor, point: Tensor, d_t: Tensor, boxes: Tensor, groups,
+              R: Tensor, shadows: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The surface pass on tensor ops: ``image (3, P)``, ``semantic``, ``instance (P,)`` (0 without a hit) and the
+    camera-frame normal ``(3, P)`` from the room hit ``room``, the box hits ``box_id (P,)`` (-1: none), ``hit (P,)``
+    and the component-major hit points and ray directions ``(3, P)`` (``native_shade`` is the same pass in C)."""
+    dtype, device = point.dtype, point.device
+    n, n_dec = scene.num_walls, len(scene.decals)
+    is_box = box_id >= 0
     # surface id per pixel
     is_wall = room.kind == WALL
     surf = torch.where(is_wall, room.wall, torch.where(room.kind == FLOOR, n, n + 1))
@@ -183,33 +226,30 @@ def _render(scene: Scene, camera, pose: np.ndarray, layout: bool, dtype: torch.d
 
     image = _shade(scene, mat_t, surf, tex_u, tex_v, point, normal, hit, dtype, device, boxes, groups, shadows)
 
-    R = torch.as_tensor(pose[:3, :3], dtype=dtype, device=device)
     normal_cam = R.T @ normal                      # R^T n
     sem = sem * hit
     inst = inst * hit
-    out = {
-        "image": image.reshape(3, H, W).to(torch.float32),
-        "depth": t.reshape(1, H, W).to(torch.float32),
-        "semantic": sem.reshape(H, W),
-        "instance": inst.reshape(H, W),
-        "normal": normal_cam.reshape(3, H, W).to(torch.float32),
-        "valid": hit.reshape(H, W),
-    }
-    meta = {"camera": camera.to_config(), "manhattan": bool(scene.manhattan), "num_walls": int(n),
-            "rig_radius": float(rig), "scene_seed": int(scene.seed)}
-    if layout:
-        kind_map = (room.kind * hit).reshape(H, W)
-        out["layout_seg"] = kind_map
-        out.update(layout_ground_truth(scene, camera, pose, kind_map, room.wall.reshape(H, W),
-                                       vertical_columns=columns is not None))
-        r_up = upright_rotation(torch.as_tensor(pose[:3, :3], dtype=torch.float64))
-        out["pose"] = torch.as_tensor(pose, dtype=torch.float32)
-        out["rotation"] = torch.as_tensor(r_up, dtype=torch.float32)
-        out["horizon_normal"] = torch.as_tensor(pose[:3, :3].T @ np.array([0.0, 0.0, 1.0]), dtype=torch.float32)
-        out["camera_height"] = torch.tensor(float(pose[2, 3]), dtype=torch.float32)
-        out["ceiling_height"] = torch.tensor(float(scene.height), dtype=torch.float32)
-    out["meta"] = meta
-    return out
+    return image, sem, inst, normal_cam
+
+
+def _native_tables(scene: Scene, boxes: Tensor) -> native_shade.SurfaceTables:
+    """The scene's tables for :func:`native_shade.surface_shade`, float32 as :func:`_surfaces` casts them."""
+    f32 = torch.float32
+    sem_t, inst_t, mat_t, nrm_t = _surface_tables(scene, f32, None)
+    dec = np.asarray(scene.decals, np.float64).reshape(-1, 7)                  # [wall, s0, s1, z0, z1, ...]
+    openings = np.stack([dec[:, 1], dec[:, 2], dec[:, 3], dec[:, 4], dec[:, 2] - dec[:, 1], dec[:, 4] - dec[:, 3]], 1)
+    m = scene.materials
+    panel = np.asarray(m["texture"])[np.asarray(scene.decal_material, np.int64)] == M.PANEL
+    yaw = boxes[:, 6]
+    return native_shade.SurfaceTables(
+        n_walls=int(scene.num_walls), openings=torch.as_tensor(openings, dtype=f32),
+        opening_wall=torch.as_tensor(dec[:, 0]).to(torch.int64), opening_panel=torch.as_tensor(panel, dtype=torch.bool),
+        boxes=torch.cat([boxes[:, :6], torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]], 1),
+        semantic=sem_t, instance=inst_t, material=mat_t, normal=nrm_t.contiguous(),
+        colour=torch.as_tensor(np.concatenate([m["c1"], m["c2"]], 1), dtype=f32),
+        texture=torch.as_tensor(m["texture"], dtype=torch.int64), scale=torch.as_tensor(m["scale"]).to(f32),
+        emissive=torch.as_tensor(m["emissive"], dtype=torch.bool), lights=torch.as_tensor(scene.lights, dtype=f32),
+        ambient=float(scene.ambient))
 
 
 def _shade(scene: Scene, mat_t: Tensor, surf: Tensor, tu: Tensor, tv: Tensor, point: Tensor, normal: Tensor,

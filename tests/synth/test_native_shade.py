@@ -1,0 +1,192 @@
+"""The renderer's native surface pass (``native_shade``) against its tensor-op path (``render._surfaces``).
+
+Labels, validity, depth and layout keys must be equal; the image and the camera-frame normal to 1e-5 (on an MKL
+build they are bit-identical: the native pass sums the three matrix products as sgemm does). Scenes are varied so
+that every texture kind, emissive materials, wall openings, boxes and pixels without a hit are exercised.
+"""
+import dataclasses
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from omnidl.cameras import build, resolve_camera
+from omnidl.nn import native
+from omnidl.synth import materials as M
+from omnidl.synth import native_shade, place_camera, render, sample_room
+
+pytestmark = pytest.mark.skipif(native.library() is None, reason="native kernels unavailable")
+
+CAMERAS = {
+    "equirect": lambda: build({"type": "equirect", "width": 96, "height": 48}),
+    "noncentral_pano": lambda: build({"type": "noncentral_pano", "width": 96, "height": 48, "rc": 0.8}),
+    "fisheye": lambda: resolve_camera("fisheye_equiangular", 48, 48),      # pixels without a ray
+    "pinhole": lambda: build({"type": "pinhole", "width": 48, "height": 36, "fx": 30.0, "fy": 30.0,
+                              "cx": 24.0, "cy": 18.0}),
+}
+
+
+def _both(scene, cam, pose, monkeypatch, **kw):
+    """The render with the native pass and with the tensor ops; asserts the native pass ran."""
+    calls = []
+    real = native_shade.surface_shade
+    monkeypatch.setattr(native_shade, "surface_shade", lambda *a: calls.append(1) or real(*a))
+    fast = render(scene, cam, pose, **kw)
+    assert calls, "the native pass did not run"
+    monkeypatch.setattr(native_shade, "ENABLED", False)
+    slow = render(scene, cam, pose, **kw)
+    monkeypatch.setattr(native_shade, "ENABLED", True)
+    return fast, slow
+
+
+def _assert_same(a, b, what):
+    assert a.keys() == b.keys() and a["meta"] == b["meta"], what
+    for k in a:
+        if k == "meta":
+            continue
+        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, (what, k)
+        if k in ("image", "normal"):
+            torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-5, msg=f"{what} {k}")
+        else:
+            assert torch.equal(a[k], b[k]), (what, k)
+
+
+def _with_texture(scene, kind, scale=None):
+    """``scene`` with every material's texture set to ``kind`` (and its scale to ``scale`` if given)."""
+    m = {k: np.array(v, copy=True) for k, v in scene.materials.items()}
+    m["texture"][:] = kind
+    if scale is not None:
+        m["scale"][:] = scale
+    return dataclasses.replace(scene, materials=m)
+
+
+@pytest.mark.parametrize("name", list(CAMERAS))
+@pytest.mark.parametrize("seed", [3, 10])
+def test_every_output_matches_the_tensor_path(name, seed, monkeypatch):
+    cam = CAMERAS[name]()
+    sc = sample_room(seed)
+    for rotation in ("upright", "random"):
+        try:
+            pose = place_camera(sc, cam, seed, rotation=rotation)
+        except RuntimeError:
+            continue
+        _assert_same(*_both(sc, cam, pose, monkeypatch), f"{name} {seed} {rotation}")
+
+
+@pytest.mark.parametrize("kind", [M.PLAIN, M.STRIPES, M.CHECKER, M.NOISE, M.PLANKS, M.PANEL, 9])
+def test_every_texture_kind_matches(kind, monkeypatch):
+    """Kind 9 is not a named texture: texture_mix's last branch (planks) takes it, as the native pass does."""
+    cam = CAMERAS["equirect"]()
+    sc = sample_room(4)
+    pose = place_camera(sc, cam, 4)
+    for scale in (None, 1e-5, 0.37):       # 1e-5: clamped to 1e-3, thousands of cells, negative cell indices
+        _assert_same(*_both(_with_texture(sc, kind, scale), cam, pose, monkeypatch), f"kind {kind} scale {scale}")
+
+
+def test_emissive_materials_and_a_room_without_objects(monkeypatch):
+    cam = CAMERAS["noncentral_pano"]()
+    sc = sample_room(6)
+    m = {k: np.array(v, copy=True) for k, v in sc.materials.items()}
+    m["emissive"][::2] = True
+    lit = dataclasses.replace(sc, materials=m)
+    _assert_same(*_both(lit, cam, place_camera(lit, cam, 6), monkeypatch), "emissive")
+    bare = sample_room(2, furniture=False)
+    assert len(bare.boxes) == 0
+    _assert_same(*_both(bare, cam, place_camera(bare, cam, 2), monkeypatch), "no boxes")
+
+
+def test_overlapping_panel_openings_keep_the_tensor_paths_order(monkeypatch):
+    """A later opening over an earlier PANEL one takes the surface but keeps the panel's coordinates unless it is a
+    panel too: the order of the tensor path's loop."""
+    cam = CAMERAS["equirect"]()
+    sc = sample_room(8)
+    assert len(sc.decals)
+    dec = np.concatenate([sc.decals, sc.decals[:1]])
+    dec[-1, 1:5] = dec[0, 1] - 0.2, dec[0, 2] - 0.3, dec[0, 3] + 0.1, dec[0, 4] + 0.4
+    m = {k: np.array(v, copy=True) for k, v in sc.materials.items()}
+    first = int(sc.decal_material[0])
+    m["texture"][first] = M.PANEL
+    over = dataclasses.replace(sc, decals=dec, decal_material=np.append(sc.decal_material, sc.floor_material),
+                               materials=m)
+    fast, slow = _both(over, cam, place_camera(over, cam, 8), monkeypatch)
+    _assert_same(fast, slow, "overlapping openings")
+
+
+def test_threads_do_not_change_the_result():
+    cam = CAMERAS["noncentral_pano"]()
+    sc = sample_room(11)
+    pose = place_camera(sc, cam, 11)
+    a = render(sc, cam, pose, threads=1)
+    b = render(sc, cam, pose, threads=3)
+    for k in a:
+        if k != "meta":
+            assert torch.equal(a[k], b[k]), k
+
+
+def test_other_dtypes_devices_and_shadows_keep_the_tensor_ops(monkeypatch):
+    assert native_shade.applies(torch.zeros(3, 2))
+    assert not native_shade.applies(torch.zeros(3, 2, dtype=torch.float64))
+    with monkeypatch.context() as m:
+        m.setattr(native, "library", lambda: None)                       # no compiler, or OMNIDL_NATIVE=0
+        assert not native_shade.applies(torch.zeros(3, 2))
+    monkeypatch.setattr(native_shade, "surface_shade", lambda *a: pytest.fail("native pass ran"))
+    cam = CAMERAS["equirect"]()
+    sc = sample_room(5)
+    pose = place_camera(sc, cam, 5)
+    render(sc, cam, pose, dtype=torch.float64)
+    render(sc, cam, pose, shadows=True)
+
+
+def _operands(P=4, K=1, B=1, M=2, L=1, n_walls=4):
+    S = n_walls + 2 + K + B
+    tables = native_shade.SurfaceTables(
+        n_walls, torch.zeros(K, 6), torch.zeros(K, dtype=torch.int64), torch.zeros(K, dtype=torch.bool),
+        torch.zeros(B, 8), torch.zeros(S, dtype=torch.int64), torch.zeros(S, dtype=torch.int64),
+        torch.zeros(S, dtype=torch.int64), torch.zeros(n_walls + 2 + K, 3), torch.zeros(M, 6),
+        torch.zeros(M, dtype=torch.int64), torch.ones(M), torch.zeros(M, dtype=torch.bool), torch.zeros(L, 4), 0.3)
+    pixels = dict(point=torch.zeros(3, P), direction=torch.ones(3, P), hit=torch.ones(P, dtype=torch.bool),
+                  box_id=torch.full((P,), -1), kind=torch.full((P,), 2), wall=torch.zeros(P, dtype=torch.int64),
+                  wall_s=torch.zeros(P))
+    return pixels, tables
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("point", torch.zeros(3, 4, dtype=torch.float64), "point must be a torch.float32"),
+    ("hit", torch.ones(4), "hit must be a torch.bool"),
+    ("box_id", torch.zeros(5, dtype=torch.int64), r"box_id must be .* shape \(4,\)"),
+    ("wall_s", torch.zeros(4, 1), r"wall_s must be .* shape \(4,\)"),
+    ("boxes", torch.zeros(1, 9), r"boxes must be .* shape \(1, 8\)"),
+    ("normal", torch.zeros(8, 3), r"normal must be .* shape \(7, 3\)"),
+    ("scale", torch.ones(2, dtype=torch.float64), "scale must be a torch.float32"),
+])
+def test_bad_operands_are_named_errors(field, value, message):
+    pixels, tables = _operands()
+    if field in pixels:
+        pixels[field] = value
+    else:
+        tables = tables._replace(**{field: value})
+    with pytest.raises(ValueError, match=message):
+        native_shade.surface_shade(*pixels.values(), tables, torch.eye(3))
+
+
+def test_a_pixel_on_a_box_gets_the_face_normal_and_the_box_labels():
+    """One pixel by hand: a hit on the +x face of a box yawed by 90 degrees (outward normal +y in the world)."""
+    pixels, tables = _operands(P=1, K=0, B=1)
+    c, s = float(np.cos(np.pi / 2)), float(np.sin(np.pi / 2))
+    tables = tables._replace(boxes=torch.tensor([[0.0, 0.0, 1.0, 0.5, 0.2, 0.3, c, s]], dtype=torch.float32),
+                             semantic=torch.arange(7), instance=torch.arange(7) + 10,
+                             colour=torch.tensor([[0.5, 0.5, 0.5, 0.0, 0.0, 0.0]] * 2),
+                             lights=torch.tensor([[0.0, 3.0, 1.0, 1.0]]))
+    pixels.update(point=torch.tensor([[0.0], [0.5], [1.0]]), direction=torch.tensor([[0.0], [-1.0], [0.0]]),
+                  box_id=torch.tensor([0]))
+    image, sem, inst, normal = native_shade.surface_shade(*pixels.values(), tables, torch.eye(3))
+    assert sem.tolist() == [6] and inst.tolist() == [16]                   # surface n_walls + 2 + K + 0
+    torch.testing.assert_close(normal[:, 0], torch.tensor([0.0, 1.0, 0.0]), atol=1e-6, rtol=0)
+    light = 0.3 + 1.0 * (2.5 / 2.5) / (1 + 0.25 * 2.5 ** 2)               # ambient + power * cos / (1 + d^2 / 4)
+    torch.testing.assert_close(image[:, 0], torch.full((3,), 0.5 * 1.25 * light / (1 + 0.25 * light)))
+
+
+def test_the_renderer_module_uses_the_native_pass_by_default():
+    render_module = sys.modules["omnidl.synth.render"]
+    assert render_module.native_shade is native_shade and native_shade.ENABLED
