@@ -15,6 +15,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from . import native_cast
+
 CEILING, WALL, FLOOR = 1, 2, 3
 _EPS = 1e-6
 
@@ -233,8 +235,6 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
             dist2 = (mids * mids).sum(-1)[:, None] - 2 * mids @ origin.T + (origin * origin).sum(-1)[None]
             cand_all = (dist2 - proj * proj <= (r * r)[:, None]) & (proj >= -r[:, None])
     everyone = torch.arange(P, device=direction.device)
-    frames = _box_frames(origin, boxes) if central else None                 # (10, 1, B)
-    inv_z = _safe_inverse(direction[:, 2:])                                  # (P, 1)
     rays = []
     for gi in range(len(groups)):
         if candidates is not None:
@@ -243,8 +243,13 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
             rays.append(everyone)
         else:
             rays.append(cand_all[gi].nonzero()[:, 0])
+    if native_cast.applies(origin, direction, boxes, t_best):
+        native_cast.box_slabs(origin, direction, boxes, groups, rays, t_best, box_id)   # the loop below, in C
+        return t_best, box_id
+    frames = _box_frames(origin, boxes) if central else None                 # (10, 1, B)
+    inv_z = _safe_inverse(direction[:, 2:])                                  # (P, 1)
     for g, idx in zip(groups, rays):
-        if idx.numel() == 0:
+        if idx.numel() == 0 or g.numel() == 0:
             continue
         g = g.to(boxes.device)
         # index_select / index_copy_: the same gathers and scatters as x[idx], several times faster
