@@ -3,7 +3,8 @@ the batch-1 LSTM recurrence (``csrc/lstm.c``), PReLU's backward (``csrc/prelu.c`
 up-sampling (``csrc/upsample.c``), the thin 1x1 expansion with batch norm (``csrc/expansion.c``), a panorama's
 wrap into channels-last memory and back (``csrc/wrap_layout.c``), the photometric gyroscopes' reads of a
 panorama at directions with their Gauss-Newton sums (``csrc/sphere_terms.c``) and the synthetic renderer's box slab
-tests and per-pixel surface and shading pass (``csrc/box_slabs.c``, ``csrc/surface_shade.c``), one shared library.
+tests, per-pixel surface and shading pass and layout maps (``csrc/box_slabs.c``, ``csrc/surface_shade.c``,
+``csrc/layout_maps.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -43,7 +44,8 @@ SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 #: every source compiled into the library
 SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c",
                                                                  "expansion.c", "wrap_layout.c", "sphere_terms.c",
-                                                                 "surface_shade.c", "box_slabs.c"))
+                                                                 "surface_shade.c", "box_slabs.c",
+                                                                 "layout_maps.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -188,6 +190,10 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_surface_shade.restype = i
     lib.omnidl_box_slabs.argtypes = [p, n, p, p, n, p, p, p, p, p, p, i]
     lib.omnidl_box_slabs.restype = i
+    lib.omnidl_layout_brackets.argtypes = [p, n, n, p, p, p, p]
+    lib.omnidl_layout_brackets.restype = i
+    lib.omnidl_layout_edges.argtypes = [p, p, n, n, i, p, i]
+    lib.omnidl_layout_edges.restype = i
     for name in ("omnidl_wrap_to_nhwc", "omnidl_wrap_from_nhwc"):
         getattr(lib, name).argtypes = [p, n, n, n, n, n, n, p, i]
         getattr(lib, name).restype = i
@@ -220,8 +226,8 @@ def library() -> ctypes.CDLL | None:
             warnings.warn(f"omnidl: the native CPU kernels are unavailable ({reason}); ProjectedConv2d runs its "
                           "slower portable path on CPU; LSTMs, the products of weight-heavy convolutions, thin 1x1 "
                           "expansions with batch norm, the backwards of PReLU and of up-sampling, the wrap of "
-                          "task heads, the photometric gyroscopes' iterations and the renderer's box tests and "
-                          "surface pass run on PyTorch's own ops",
+                          "task heads, the photometric gyroscopes' iterations and the renderer's box tests, surface "
+                          "pass and layout maps run on PyTorch's own ops",
                           RuntimeWarning, stacklevel=2)
         _STATE.update(lib=lib, path=path, reason=reason)
         return lib

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from . import native_layout
 from .raycast import CEILING, FLOOR, WALL, _walls_2d, cast_room
 from .scene import Scene
 
@@ -164,6 +165,20 @@ def _replay(lo: Tensor, hi: Tensor, edge: Tensor) -> tuple[Tensor, Tensor, Tenso
             torch.from_numpy(moved_hi))
 
 
+def _brackets(kind_map: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per column of ``kind_map (H, W)`` (CPU): the first row ``i_c`` with CEILING above WALL below, the last row
+    ``i_f`` with WALL above FLOOR below (int64 ``(W,)``; 0 and ``H - 2`` where there is none) and whether each exists."""
+    H, W = kind_map.shape
+    if native_layout.applies(kind_map):
+        return native_layout.brackets(kind_map)
+    k = kind_map.to(torch.int8)              # classes 0..3: the same comparisons on 8x less memory
+    ceil_t = (k[:-1] == CEILING) & (k[1:] == WALL)
+    floor_t = (k[:-1] == WALL) & (k[1:] == FLOOR)
+    i_c = ceil_t.to(torch.int8).argmax(0)
+    i_f = (H - 2) - floor_t.flip(0).to(torch.int8).argmax(0)
+    return i_c, i_f, ceil_t.any(0), floor_t.any(0)
+
+
 def column_boundaries(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor,
                       vertical_columns: bool = False) -> tuple[Tensor, Tensor]:
     """Sub-pixel rows ``(2, W)`` of the ceiling–wall and wall–floor transitions of every column, and validity.
@@ -175,12 +190,7 @@ def column_boundaries(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor,
     of the module docstring; the result does not depend on it.
     """
     H, W = kind_map.shape
-    k = kind_map.cpu().to(torch.int8)        # classes 0..3: the same comparisons on 8x less memory
-    ceil_t = (k[:-1] == CEILING) & (k[1:] == WALL)
-    floor_t = (k[:-1] == WALL) & (k[1:] == FLOOR)
-    has_c, has_f = ceil_t.any(0), floor_t.any(0)
-    i_c = ceil_t.to(torch.int8).argmax(0)
-    i_f = (H - 2) - floor_t.flip(0).to(torch.int8).argmax(0)
+    i_c, i_f, has_c, has_f = _brackets(kind_map.cpu())
     lo = torch.cat([i_c, i_f]).to(torch.float64) + 0.5
     hi = lo + 1.0
     lo_kind = torch.cat([torch.full((W,), CEILING), torch.full((W,), WALL)])
@@ -208,6 +218,24 @@ def column_boundaries(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor,
     v = (0.5 * (lo_f + hi_f)).reshape(2, W)
     v = torch.where(valid, v, torch.full_like(v, -1.0))
     return v.to(torch.float32), valid
+
+
+def _edge_map(kind_map: Tensor, wall_map: Tensor, wraps: bool) -> Tensor:
+    """``(H, W)`` float 1 on wall-wall (vertical) edges and, for cameras that do not wrap (no single boundary per
+    column), on every vertical class change; the ceiling/floor boundary pixels are added by the caller."""
+    if native_layout.applies(kind_map, wall_map):
+        return native_layout.edges(kind_map, wall_map, wraps)
+    H, W = kind_map.shape
+    walls = kind_map == WALL
+    key = kind_map * 64 + torch.where(walls, wall_map.clamp_min(0), 0)
+    edges = torch.zeros(H, W)
+    right = torch.roll(key, -1, 1) if wraps else torch.cat([key[:, 1:], key[:, -1:]], 1)
+    right_wall = torch.roll(walls, -1, 1) if wraps else torch.cat([walls[:, 1:], walls[:, -1:]], 1)
+    edges.masked_fill_((key != right) & walls & right_wall, 1.0)     # wall-wall (vertical) edges
+    if not wraps:
+        below = torch.cat([key[1:], key[-1:]], 0)
+        edges.masked_fill_((key != below) & (key > 0) & (below > 0), 1.0)
+    return edges
 
 
 def layout_ground_truth(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor, wall_map: Tensor,
@@ -246,19 +274,10 @@ def layout_ground_truth(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor
 
     # structural edge map (EM_gt): the pixel holding each column's ceiling/floor boundary, wall-wall edges,
     # and for cameras that do not wrap (no single boundary per column) every vertical class change
-    kind_map = kind_map.cpu()
-    walls = kind_map == WALL
-    key = kind_map * 64 + torch.where(walls, wall_map.cpu().clamp_min(0), 0)
-    edges = torch.zeros(H, W)
-    right = torch.roll(key, -1, 1) if camera.wraps_horizontally else torch.cat([key[:, 1:], key[:, -1:]], 1)
-    right_wall = torch.roll(walls, -1, 1) if camera.wraps_horizontally else torch.cat([walls[:, 1:], walls[:, -1:]], 1)
-    edges.masked_fill_((key != right) & walls & right_wall, 1.0)     # wall-wall (vertical) edges
+    edges = _edge_map(kind_map.cpu(), wall_map.cpu(), camera.wraps_horizontally)
     rows = boundary.floor().long().clamp(0, H - 1)
     colsi = torch.arange(W).repeat(2, 1)
     edges[rows[b_valid], colsi[b_valid]] = 1.0
-    if not camera.wraps_horizontally:
-        below = torch.cat([key[1:], key[-1:]], 0)
-        edges.masked_fill_((key != below) & (key > 0) & (below > 0), 1.0)
 
     return {
         "boundary": boundary,

@@ -252,7 +252,8 @@ def test_a_failing_compile_warns_with_the_compiler_message(monkeypatch, tmp_path
     try:
         with pytest.warns(RuntimeWarning,
                           match=r"failed on fixed_conv.c, lstm.c, prelu.c, upsample.c, expansion.c, wrap_layout.c, "
-                                r"sphere_terms.c, surface_shade.c, box_slabs.c \(exit 3\): fatal: cannot compile here"):
+                                r"sphere_terms.c, surface_shade.c, box_slabs.c, layout_maps.c \(exit 3\): fatal: "
+                                r"cannot compile here"):
             assert native.library() is None
         assert not [p for p in (tmp_path / "cache" / "native").iterdir()]  # the temporary file is removed
     finally:
