@@ -167,7 +167,8 @@ def _replay(lo: Tensor, hi: Tensor, edge: Tensor) -> tuple[Tensor, Tensor, Tenso
 
 def _brackets(kind_map: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per column of ``kind_map (H, W)`` (CPU): the first row ``i_c`` with CEILING above WALL below, the last row
-    ``i_f`` with WALL above FLOOR below (int64 ``(W,)``; 0 and ``H - 2`` where there is none) and whether each exists."""
+    ``i_f`` with WALL above FLOOR below (int64 ``(W,)``; 0 and ``H - 2`` where there is none) and whether each
+    exists."""
     H, W = kind_map.shape
     if native_layout.applies(kind_map):
         return native_layout.brackets(kind_map)
