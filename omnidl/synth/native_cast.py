@@ -32,6 +32,13 @@ def _starts(parts: list[Tensor]) -> tuple[Tensor, Tensor]:
     return flat.contiguous(), sizes.cumsum(0)
 
 
+def box_table(boxes: Tensor) -> Tensor:
+    """``(B, 8)`` rows ``x, y, z, hx, hy, hz, cos yaw, sin yaw`` of scene box rows ``(B, 9)``: the native passes'
+    box table. The yaw column is read strided, as ``raycast._box_frames`` reads it (the same cos and sin values)."""
+    yaw = boxes[:, 6]
+    return torch.cat([boxes[:, :6], torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]], 1).contiguous()
+
+
 def box_slabs(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Tensor], rays: list[Tensor],
               t_best: Tensor, box_id: Tensor) -> None:
     """Update ``t_best (P,)`` and ``box_id (P,)`` in place with the nearest entries of rays ``origin (P or 1, 3)``,
@@ -50,8 +57,7 @@ def box_slabs(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Ten
                          f"got {t_best.dtype} {tuple(t_best.shape)} and {box_id.dtype} {tuple(box_id.shape)}")
     if len(groups) != len(rays):
         raise ValueError(f"box_slabs: {len(groups)} box groups but {len(rays)} ray lists")
-    yaw = boxes[:, 6]          # strided, as _box_frames reads it: the same cos and sin values
-    table = torch.cat([boxes[:, :6], torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]], 1).contiguous()
+    table = box_table(boxes)
     box_idx, box_start = _starts(groups)
     ray_idx, ray_start = _starts(rays)
     if box_idx.numel() and not (0 <= int(box_idx.min()) and int(box_idx.max()) < len(boxes)):

@@ -16,8 +16,8 @@ from omnidl.nn.threads import limit_threads
 
 from . import materials as M
 from .layout import layout_ground_truth
+from . import native_cast, native_shade
 from .raycast import FLOOR, WALL, box_normals, cast_boxes, cast_room, column_rays, group_spheres
-from . import native_shade
 from .scene import Scene
 from .tiles import ray_tiles, tile_batches, tile_mask
 
@@ -240,11 +240,10 @@ def _native_tables(scene: Scene, boxes: Tensor) -> native_shade.SurfaceTables:
     openings = np.stack([dec[:, 1], dec[:, 2], dec[:, 3], dec[:, 4], dec[:, 2] - dec[:, 1], dec[:, 4] - dec[:, 3]], 1)
     m = scene.materials
     panel = np.asarray(m["texture"])[np.asarray(scene.decal_material, np.int64)] == M.PANEL
-    yaw = boxes[:, 6]
     return native_shade.SurfaceTables(
         n_walls=int(scene.num_walls), openings=torch.as_tensor(openings, dtype=f32),
         opening_wall=torch.as_tensor(dec[:, 0]).to(torch.int64), opening_panel=torch.as_tensor(panel, dtype=torch.bool),
-        boxes=torch.cat([boxes[:, :6], torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]], 1),
+        boxes=native_cast.box_table(boxes),
         semantic=sem_t, instance=inst_t, material=mat_t, normal=nrm_t.contiguous(),
         colour=torch.as_tensor(np.concatenate([m["c1"], m["c2"]], 1), dtype=f32),
         texture=torch.as_tensor(m["texture"], dtype=torch.int64), scale=torch.as_tensor(m["scale"]).to(f32),
