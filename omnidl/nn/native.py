@@ -233,6 +233,11 @@ def library() -> ctypes.CDLL | None:
         return lib
 
 
+def accepts(*tensors: torch.Tensor, dtype: torch.dtype = torch.float32) -> bool:
+    """Whether the native kernels can take these tensors: each a CPU tensor of ``dtype``, and the library built."""
+    return all(t.device.type == "cpu" and t.dtype == dtype for t in tensors) and library() is not None
+
+
 #: what ``omnidl_fc_kernel()`` returns, by name
 KERNELS = ("blas", "avx2", "avx512")
 

@@ -21,8 +21,7 @@ ENABLED = True
 
 def applies(*tensors: Tensor) -> bool:
     """Whether the native slab tests run for these tensors (float32 on the CPU, library built)."""
-    return (ENABLED and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
-            and native.library() is not None)
+    return ENABLED and native.accepts(*tensors)
 
 
 def _starts(parts: list[Tensor]) -> tuple[Tensor, Tensor]:

@@ -19,9 +19,7 @@ ENABLED = True
 
 def applies(*maps: Tensor) -> bool:
     """Whether the native passes run for these ``(H, W)`` maps (int64 on the CPU, at least 2 rows, library built)."""
-    return (ENABLED and all(m.device.type == "cpu" and m.dtype == torch.int64 and m.dim() == 2 and m.shape[0] >= 2
-                            for m in maps)
-            and native.library() is not None)
+    return ENABLED and all(m.dim() == 2 and m.shape[0] >= 2 for m in maps) and native.accepts(*maps, dtype=torch.int64)
 
 
 def _map(m: Tensor, name: str, shape=None) -> Tensor:

@@ -45,8 +45,7 @@ class SurfaceTables(NamedTuple):
 
 def applies(*tensors: Tensor) -> bool:
     """Whether the native pass runs for these tensors (float32 on the CPU, library built)."""
-    return (ENABLED and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
-            and native.library() is not None)
+    return ENABLED and native.accepts(*tensors)
 
 
 def _operand(t: Tensor, dtype: torch.dtype, shape: tuple, name: str) -> Tensor:

@@ -32,8 +32,7 @@ ENABLED = True
 
 def applies(*tensors: Tensor) -> bool:
     """Whether the native iterations run for these tensors (float32 on the CPU, library built, not capturing)."""
-    return (ENABLED and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
-            and not capturing() and native.library() is not None)
+    return ENABLED and not capturing() and native.accepts(*tensors)
 
 
 def _check(where: str, **tensors: Tensor) -> None:
