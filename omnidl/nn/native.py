@@ -185,8 +185,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_pvg_stage.restype = i
     lib.omnidl_mpp_yaw.argtypes = [p, n, i, p, i, p, n, i, i, i, f, p, p]
     lib.omnidl_mpp_yaw.restype = i
-    lib.omnidl_surface_shade.argtypes = [n, p, p, p, p, p, p, p, n, n, p, p, p, p, p, p, p, p, p, p, p, p, i, p, f, p,
-                                         p, p, p, p, i]
+    lib.omnidl_surface_shade.argtypes = [n, p, p, p, p, p, p, p, n, n, p, p, p, p, n, p, p, p, p, p, p, p, p, i, p, f,
+                                         p, p, p, p, p, i]
     lib.omnidl_surface_shade.restype = i
     lib.omnidl_box_slabs.argtypes = [p, n, p, p, n, p, p, p, p, p, p, i]
     lib.omnidl_box_slabs.restype = i

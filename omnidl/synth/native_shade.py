@@ -67,23 +67,29 @@ def surface_shade(point: Tensor, direction: Tensor, hit: Tensor, box_id: Tensor,
            _operand(hit, torch.bool, (P,), "hit"), _operand(box_id, i64, (P,), "box_id"),
            _operand(kind, i64, (P,), "kind"), _operand(wall, i64, (P,), "wall"), _operand(wall_s, f32, (P,), "wall_s")]
     tb = tables
-    K, B, S, M, L = (len(tb.openings), len(tb.boxes), len(tb.semantic), len(tb.colour), len(tb.lights))
-    scene_ops = [_operand(tb.opening_wall, i64, (K,), "opening_wall"), _operand(tb.openings, f32, (K, 6), "openings"),
-                 _operand(tb.opening_panel, torch.bool, (K,), "opening_panel"),
-                 _operand(tb.boxes, f32, (B, 8), "boxes"), _operand(tb.semantic, i64, (S,), "semantic"),
-                 _operand(tb.instance, i64, (S,), "instance"), _operand(tb.material, i64, (S,), "material"),
-                 _operand(tb.normal, f32, (tb.n_walls + 2 + K, 3), "normal"),
-                 _operand(tb.colour, f32, (M, 6), "colour"),
-                 _operand(tb.texture, i64, (M,), "texture"), _operand(tb.scale, f32, (M,), "scale"),
-                 _operand(tb.emissive, torch.bool, (M,), "emissive")]
+    K, B, M, L = len(tb.openings), len(tb.boxes), len(tb.colour), len(tb.lights)
+    S = tb.n_walls + 2 + K + B          # walls, floor, ceiling, openings, boxes
+    openings = [_operand(tb.opening_wall, i64, (K,), "opening_wall"), _operand(tb.openings, f32, (K, 6), "openings"),
+                _operand(tb.opening_panel, torch.bool, (K,), "opening_panel"), _operand(tb.boxes, f32, (B, 8), "boxes")]
+    surfaces = [_operand(tb.semantic, i64, (S,), "semantic"), _operand(tb.instance, i64, (S,), "instance"),
+                _operand(tb.material, i64, (S,), "material"),
+                _operand(tb.normal, f32, (tb.n_walls + 2 + K, 3), "normal"),
+                _operand(tb.colour, f32, (M, 6), "colour"),
+                _operand(tb.texture, i64, (M,), "texture"), _operand(tb.scale, f32, (M,), "scale"),
+                _operand(tb.emissive, torch.bool, (M,), "emissive")]
+    if S and not (0 <= int(tb.material.min()) and int(tb.material.max()) < M):
+        raise ValueError(f"surface_shade: material holds an index outside [0, {M}) (the colour table's rows)")
     lights = _operand(tb.lights, f32, (L, 4), "lights")
     Rm = _operand(R, f32, (3, 3), "R")
     image = torch.empty(3, P, dtype=f32)
     sem = torch.empty(P, dtype=i64)
     inst = torch.empty(P, dtype=i64)
     normal = torch.empty(3, P, dtype=f32)
-    native.library().omnidl_surface_shade(
-        P, *(t.data_ptr() for t in ops), tb.n_walls, K, *(t.data_ptr() for t in scene_ops), L, lights.data_ptr(),
-        float(tb.ambient), Rm.data_ptr(), image.data_ptr(), sem.data_ptr(), inst.data_ptr(), normal.data_ptr(),
-        max(1, torch.get_num_threads()))
+    status = native.library().omnidl_surface_shade(
+        P, *(t.data_ptr() for t in ops), tb.n_walls, K, *(t.data_ptr() for t in openings), B,
+        *(t.data_ptr() for t in surfaces), L, lights.data_ptr(), float(tb.ambient), Rm.data_ptr(), image.data_ptr(),
+        sem.data_ptr(), inst.data_ptr(), normal.data_ptr(), max(1, torch.get_num_threads()))
+    if status:
+        raise ValueError(f"surface_shade: box_id holds a box index of {B} or more, or a wall pixel without a box "
+                         f"has a wall outside [0, {tb.n_walls})")
     return image, sem, inst, normal

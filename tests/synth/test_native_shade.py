@@ -159,6 +159,11 @@ def _operands(P=4, K=1, B=1, M=2, L=1, n_walls=4):
     ("boxes", torch.zeros(1, 9), r"boxes must be .* shape \(1, 8\)"),
     ("normal", torch.zeros(8, 3), r"normal must be .* shape \(7, 3\)"),
     ("scale", torch.ones(2, dtype=torch.float64), "scale must be a torch.float32"),
+    ("semantic", torch.zeros(7, dtype=torch.int64), r"semantic must be .* shape \(8,\)"),
+    ("material", torch.full((8,), 2), r"material holds an index outside \[0, 2\)"),
+    ("box_id", torch.tensor([-1, 1, -1, -1]), "box_id holds a box index of 1 or more"),
+    ("wall", torch.tensor([0, 4, 0, 0]), r"wall outside \[0, 4\)"),
+    ("wall", torch.tensor([0, -1, 0, 0]), r"wall outside \[0, 4\)"),
 ])
 def test_bad_operands_are_named_errors(field, value, message):
     pixels, tables = _operands()

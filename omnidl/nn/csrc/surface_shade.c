@@ -92,18 +92,20 @@ static void box_face(const float *b, float px, float py, float pz, float n[3], f
  *     texture weight w), times the light ambient + sum over lights (L, 4) rows x, y, z, power of
  *     power max(n.(l - p) / |l - p|, 0) / (1 + |l - p|^2 / 4) (|l - p|^2 at least 1e-12), rolled off as
  *     1.25 light / (1 + light / 4), unless the material is emissive; clamped to [0, 1]; 0 without a hit.
- * Returns 0. */
+ * Returns 0, or 3 when a box index is n_boxes or more, or a wall pixel without a box has a wall outside
+ * [0, n_walls) (such a pixel is shaded as ceiling, so nothing is read out of bounds). */
 int omnidl_surface_shade(int64_t P, const float *point, const float *dir, const uint8_t *hit, const int64_t *box,
                          const int64_t *kind, const int64_t *wall, const float *wall_s, int64_t n_walls,
                          int64_t K, const int64_t *dec_wall, const float *dec, const uint8_t *dec_panel,
-                         const float *boxes, const int64_t *surf_sem, const int64_t *surf_inst,
+                         const float *boxes, int64_t n_boxes, const int64_t *surf_sem, const int64_t *surf_inst,
                          const int64_t *surf_mat, const float *surf_normal, const float *mat_colour,
                          const int64_t *mat_texture, const float *mat_scale, const uint8_t *mat_emissive, int L,
                          const float *lights, float ambient, const float *R, float *image, int64_t *sem,
                          int64_t *inst, float *normal_cam, int nthreads) {
     const float *px_ = point, *py_ = point + P, *pz_ = point + 2 * P;
     const int64_t blocks = (P + BLOCK - 1) / BLOCK;
-#pragma omp parallel for num_threads(nthreads) schedule(static)
+    int bad = 0;
+#pragma omp parallel for num_threads(nthreads) schedule(static) reduction(| : bad)
     for (int64_t blk = 0; blk < blocks; ++blk) {
         const int64_t p0 = blk * BLOCK, nb = P - p0 < BLOCK ? P - p0 : BLOCK;
         /* per pixel of the block: the normal facing the ray (times hit), the albedo, emissive, hit */
@@ -111,8 +113,14 @@ int omnidl_surface_shade(int64_t P, const float *point, const float *dir, const 
         for (int64_t i = 0; i < nb; ++i) { /* surfaces and textures: branches per pixel */
             const int64_t p = p0 + i;
             const float px = px_[p], py = py_[p], pz = pz_[p];
-            const int64_t kd = kind[p], bi = box[p];
-            const int is_wall = kd == WALL;
+            const int64_t kd = kind[p];
+            int64_t bi = box[p];
+            int is_wall = kd == WALL;
+            if (bi >= n_boxes || (bi < 0 && is_wall && (wall[p] < 0 || wall[p] >= n_walls))) {
+                bad = 1;
+                bi = -1;
+                is_wall = 0;
+            }
             int64_t sf = is_wall ? wall[p] : (kd == FLOOR ? n_walls : n_walls + 1);
             float tu = is_wall ? wall_s[p] : px, tv = is_wall ? pz : py;
             float n[3];
@@ -191,5 +199,5 @@ int omnidl_surface_shade(int64_t P, const float *point, const float *dir, const 
             }
         }
     }
-    return 0;
+    return bad ? 3 : 0;
 }
