@@ -169,14 +169,13 @@ def _brackets(kind_map: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per column of ``kind_map (H, W)`` (CPU): the first row ``i_c`` with CEILING above WALL below, the last row
     ``i_f`` with WALL above FLOOR below (int64 ``(W,)``; 0 and ``H - 2`` where there is none) and whether each
     exists."""
-    H, W = kind_map.shape
     if native_layout.applies(kind_map):
         return native_layout.brackets(kind_map)
     k = kind_map.to(torch.int8)              # classes 0..3: the same comparisons on 8x less memory
     ceil_t = (k[:-1] == CEILING) & (k[1:] == WALL)
     floor_t = (k[:-1] == WALL) & (k[1:] == FLOOR)
     i_c = ceil_t.to(torch.int8).argmax(0)
-    i_f = (H - 2) - floor_t.flip(0).to(torch.int8).argmax(0)
+    i_f = (kind_map.shape[0] - 2) - floor_t.flip(0).to(torch.int8).argmax(0)
     return i_c, i_f, ceil_t.any(0), floor_t.any(0)
 
 
