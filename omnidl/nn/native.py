@@ -13,8 +13,9 @@ competing for the cores with spinning threads). On x86-64 with AVX-512 (or AVX2/
 register-blocked kernel; elsewhere they call the BLAS ``sgemm_`` that PyTorch's CPU library exports (MKL in
 the x86 wheels).
 
-Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native -fno-math-errno -fno-trapping-math -fopenmp`` (without ``-fopenmp`` where
-the compiler lacks it: then single-threaded; plus ``-mprefer-vector-width=512`` on AVX-512 CPUs), linked against ``libtorch_cpu``. The shared library is cached
+Build: the C compiler of ``$CC`` (default ``cc``), ``-O3 -march=native -fno-math-errno -fno-trapping-math
+-fopenmp`` (without ``-fopenmp`` where the compiler lacks it: then single-threaded; plus
+``-mprefer-vector-width=512`` on AVX-512 CPUs), linked against ``libtorch_cpu``. The shared library is cached
 under ``$OMNIDL_CACHE_DIR/native`` (default ``$XDG_CACHE_HOME/omnidl/native``, else ``~/.cache/omnidl/native``),
 named by a hash of the source, compiler, flags, torch build and CPU, and written atomically (compiled to a
 temporary name, then renamed), so concurrent processes never load a half-written file. ``OMNIDL_NATIVE=0``

@@ -214,9 +214,9 @@ class ProjectedConv2d(nn.Conv2d):
 
     def _fast(self, x: Tensor, weight: Tensor, bias: Tensor | None, key: tuple) -> Tensor:
         """The fast backend on CPU float32: with few output channels and no autograd graph the product onto the taps
-        and a sampled sum (:mod:`.projected_taps`, CPU float32/float64), else the native fused gather+product kernel (:mod:`.fused`),
-        else (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and whenever
-        ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`)."""
+        and a sampled sum (:mod:`.projected_taps`, CPU float32/float64), else the native fused gather+product kernel
+        (:mod:`.fused`), else (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and
+        whenever ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`)."""
         plan = get_plan(key, x.device, x.dtype)
         if self.chunk_positions is None:
             if projected_taps.pays(x, weight, bias, plan):

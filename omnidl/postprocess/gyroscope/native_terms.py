@@ -13,8 +13,8 @@ points; on a 2-core machine each op costs 10-25 us of dispatch and memory passes
   three basis terms, four-channel table reads, ``J.J``, ``J.e``, ``e.e``, the step, the best angle per start).
 
 Reads (:func:`sphere_read`) are :meth:`SphereImage.read_grid`'s (``grid_sample`` of the wrapped image) with a
-polynomial ``atan2`` (within a few float32 ulps of PyTorch's); sums in double. They run for float32 CPU tensors with the native
-library built (:mod:`omnidl.nn.native`), not while a graph is captured; elsewhere (float64, CUDA,
+polynomial ``atan2`` (within a few float32 ulps of PyTorch's); sums in double. They run for float32 CPU tensors
+with the native library built (:mod:`omnidl.nn.native`), not while a graph is captured; elsewhere (float64, CUDA,
 ``OMNIDL_NATIVE=0``) the solvers keep their tensor ops. Results equal those ops' to float32 rounding
 (``tests/postprocess/gyroscope/test_native_terms.py``).
 """
@@ -67,7 +67,8 @@ def sphere_read(image: Tensor, directions: Tensor) -> Tensor:
 
 
 def _pvg_operands(image: Tensor, X: Tensor, I_ref: Tensor) -> tuple[Tensor, Tensor, Tensor, int]:
-    """``image (B, 1, H, W)``, ``X (N, 3)`` and ``I_ref (B|1, N)`` as contiguous operands, and ``I_ref``'s row stride."""
+    """``image (B, 1, H, W)``, ``X (N, 3)`` and ``I_ref (B|1, N)`` as contiguous operands, and ``I_ref``'s row
+    stride."""
     if image.dim() != 4 or image.shape[1] != 1:
         raise ValueError(f"PVG: image must have shape (B, 1, H, W), got {tuple(image.shape)}")
     if X.dim() != 2 or X.shape[1] != 3:
