@@ -36,11 +36,13 @@ extern int MKL_Set_Num_Threads_Local(int n) __attribute__((weak));
 #define KC_BLOCK 256
 #endif
 
-/* c (mr, nr) (+)= a (mr, k) b (k, 32): a[i * rs + p * cs], b[p * 32 + j] (a packed panel, zero beyond nr). 24 zmm
- * accumulators; rows beyond mr re-read row 0 and are not stored. `accumulate`: 0 writes c, 1 adds to it, 2 writes
- * it with non-temporal stores where a row is whole and aligned (see STREAMING). */
+/* c (mr, nr) (+)= a (mr, k) b (k, 32) (+ bias): a[i * rs + p * cs], b[p * 32 + j] (a packed panel, zero beyond nr).
+ * 24 zmm accumulators; rows beyond mr re-read row 0 and are not stored. `accumulate`: 0 writes c, 1 adds to it, 2
+ * writes it with non-temporal stores where a row is whole and aligned (see STREAMING). `bias` (nr values, or NULL)
+ * is added to every row, with c first when accumulating: the sum is a b + (c + bias), as when the bias was added to
+ * c before the call, without a pass over c to do so. */
 static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
-                        int accumulate, int mr, int nr) {
+                        int accumulate, int mr, int nr, const float *bias) {
     __m512 acc[MR][2];
     int64_t off[MR];
     for (int i = 0; i < MR; ++i) {
@@ -59,12 +61,22 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
     }
     const __mmask16 m0 = nr >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << nr) - 1u);
     const __mmask16 m1 = nr >= 32 ? (__mmask16)0xFFFF : nr <= 16 ? (__mmask16)0 : (__mmask16)((1u << (nr - 16)) - 1u);
+    const __m512 bias0 = bias ? _mm512_maskz_loadu_ps(m0, bias) : _mm512_setzero_ps();
+    const __m512 bias1 = bias ? _mm512_maskz_loadu_ps(m1, bias + 16) : _mm512_setzero_ps();
     for (int i = 0; i < mr; ++i) {
         float *ci = c + i * ldc;
         __m512 r0 = acc[i][0], r1 = acc[i][1];
         if (accumulate == 1) {
-            r0 = _mm512_add_ps(r0, _mm512_maskz_loadu_ps(m0, ci));
-            r1 = _mm512_add_ps(r1, _mm512_maskz_loadu_ps(m1, ci + 16));
+            __m512 c0 = _mm512_maskz_loadu_ps(m0, ci), c1 = _mm512_maskz_loadu_ps(m1, ci + 16);
+            if (bias) {
+                c0 = _mm512_add_ps(c0, bias0);
+                c1 = _mm512_add_ps(c1, bias1);
+            }
+            r0 = _mm512_add_ps(r0, c0);
+            r1 = _mm512_add_ps(r1, c1);
+        } else if (bias) {
+            r0 = _mm512_add_ps(r0, bias0);
+            r1 = _mm512_add_ps(r1, bias1);
         }
         if (accumulate == 2 && nr == NR && ((uintptr_t)ci & 63) == 0) {
             _mm512_stream_ps(ci, r0);
@@ -84,10 +96,10 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
 #define KC_BLOCK 256
 #endif
 
-/* c (mr, nr) (+)= a (mr, k) b (k, 16): a[i * rs + p * cs], b[p * 16 + j] (a packed panel, zero beyond nr).
- * `accumulate` as the AVX-512 kernel's. */
+/* c (mr, nr) (+)= a (mr, k) b (k, 16) (+ bias): a[i * rs + p * cs], b[p * 16 + j] (a packed panel, zero beyond nr).
+ * `accumulate` and `bias` as the AVX-512 kernel's. */
 static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
-                        int accumulate, int mr, int nr) {
+                        int accumulate, int mr, int nr, const float *bias) {
     __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00;
     __m256 c30 = c00, c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00;
     const float *a0 = a, *a1 = a + (mr > 1 ? rs : 0), *a2 = a + (mr > 2 ? 2 * rs : 0);
@@ -110,11 +122,21 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
     }
     __m256 r[MR][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31}, {c40, c41}, {c50, c51}};
     if (nr == NR) {
+        const __m256 bias0 = bias ? _mm256_loadu_ps(bias) : _mm256_setzero_ps();
+        const __m256 bias1 = bias ? _mm256_loadu_ps(bias + 8) : _mm256_setzero_ps();
         for (int i = 0; i < mr; ++i) {
             float *ci = c + i * ldc;
             if (accumulate == 1) {
-                r[i][0] = _mm256_add_ps(r[i][0], _mm256_loadu_ps(ci));
-                r[i][1] = _mm256_add_ps(r[i][1], _mm256_loadu_ps(ci + 8));
+                __m256 c0 = _mm256_loadu_ps(ci), c1 = _mm256_loadu_ps(ci + 8);
+                if (bias) {
+                    c0 = _mm256_add_ps(c0, bias0);
+                    c1 = _mm256_add_ps(c1, bias1);
+                }
+                r[i][0] = _mm256_add_ps(r[i][0], c0);
+                r[i][1] = _mm256_add_ps(r[i][1], c1);
+            } else if (bias) {
+                r[i][0] = _mm256_add_ps(r[i][0], bias0);
+                r[i][1] = _mm256_add_ps(r[i][1], bias1);
             }
             if (accumulate == 2 && ((uintptr_t)ci & 31) == 0) {
                 _mm256_stream_ps(ci, r[i][0]);
@@ -130,7 +152,10 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
             float *ci = c + i * ldc;
             _mm256_storeu_ps(tmp, r[i][0]);
             _mm256_storeu_ps(tmp + 8, r[i][1]);
-            for (int j = 0; j < nr; ++j) ci[j] = accumulate == 1 ? ci[j] + tmp[j] : tmp[j];
+            for (int j = 0; j < nr; ++j) {
+                const float cj = accumulate == 1 ? (bias ? ci[j] + bias[j] : ci[j]) : 0.0f;
+                ci[j] = accumulate == 1 ? tmp[j] + cj : bias ? tmp[j] + bias[j] : tmp[j];
+            }
         }
     }
 }
@@ -139,9 +164,10 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
 #endif
 
 #ifdef HAVE_TILE
-/* c (m, n) (+)= a (m, k) b (k, n): a[i * rs + p * cs]; b packed in ceil(n / NR) panels of (k, NR), panel q
- * holding columns NR*q.. (zero-padded); c row-major with leading dimension ldc; `accumulate` as kernel_tile's
- * (2, non-temporal stores, only for k <= KC_BLOCK: the later chunks of k would read c back).
+/* c (m, n) (+)= a (m, k) b (k, n) (+ bias): a[i * rs + p * cs]; b packed in ceil(n / NR) panels of (k, NR), panel q
+ * holding columns NR*q.. (zero-padded); c row-major with leading dimension ldc; `accumulate` and `bias` (n values,
+ * or NULL; added in the first chunk of k) as kernel_tile's (2, non-temporal stores, only for k <= KC_BLOCK: the later
+ * chunks of k would read c back).
  * Per chunk of KC_BLOCK k-values: when the chunk of b is small enough to stay in L2 (B_RESIDENT bytes), each
  * MR-row sliver of a is loaded once and run against every panel (rows outer); otherwise each panel's chunk stays
  * in L1 while every sliver of a runs against it (panels outer). */
@@ -151,7 +177,7 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
 /* one chunk of kb k-values of gemm_packed: MR-row sliver s of a starts at a + s * ss, element (i, p) of it at
  * [i * rs + p * cs]; panel q of b (this chunk's kb rows) at bp + q * ps */
 static void gemm_chunk(int m, int n, int kb, const float *a, int64_t ss, int64_t rs, int64_t cs, const float *bp,
-                       int64_t ps, float *c, int64_t ldc, int accumulate) {
+                       int64_t ps, float *c, int64_t ldc, int accumulate, const float *bias) {
     const int panels = (n + NR - 1) / NR, slivers = (m + MR - 1) / MR;
     const int rows_outer = (int64_t)kb * panels * NR * (int64_t)sizeof(float) <= B_RESIDENT;
     for (int outer = 0; outer < (rows_outer ? slivers : panels); ++outer) {
@@ -159,17 +185,17 @@ static void gemm_chunk(int m, int n, int kb, const float *a, int64_t ss, int64_t
             const int s = rows_outer ? outer : inner, q = rows_outer ? inner : outer;
             const int i = s * MR, nr = n - q * NR < NR ? n - q * NR : NR;
             kernel_tile(kb, a + s * ss, rs, cs, bp + q * ps, c + i * ldc + q * NR, ldc, accumulate,
-                        m - i < MR ? m - i : MR, nr);
+                        m - i < MR ? m - i : MR, nr, bias ? bias + q * NR : NULL);
         }
     }
 }
 
 static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t cs, const float *bp, float *c,
-                        int64_t ldc, int accumulate) {
+                        int64_t ldc, int accumulate, const float *bias) {
     for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
         const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
         gemm_chunk(m, n, kb, a + p0 * cs, MR * rs, rs, cs, bp + (int64_t)p0 * NR, (int64_t)k * NR, c, ldc,
-                   p0 > 0 ? 1 : accumulate);
+                   p0 > 0 ? 1 : accumulate, p0 > 0 ? NULL : bias);
     }
 }
 
@@ -205,7 +231,7 @@ static void gemm_packed_rows(int m, int n, int k, const float *a, int64_t cs, co
                 }
             }
             gemm_chunk(rows, n, kb, ap, (int64_t)kb * MR, 1, MR, bp + (int64_t)p0 * NR, (int64_t)k * NR,
-                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate);
+                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL);
         }
     }
 }
@@ -250,6 +276,53 @@ static void restore_blas_threads(int prev) {
 /* A[(r - r0) * C + c] = sum_j w[r][j] * x[idx[r][j] * C + c] for plan rows r in [r0, r1); corners of weight 0
  * (outside the image, or exactly on a pixel) are not read, so a non-finite pixel reaches only the taps that
  * sample it, as in deform_conv2d */
+#if defined(__AVX512F__)
+/* 16 channels per step, the sum w0 x0 then three fused multiply-adds; a row with a corner of weight 0 takes the
+ * masked-load path, and a tail of C % 16 channels masked loads and stores (nothing beyond C is read or written:
+ * the 3-channel stems are one masked step per row). A third of an equirectangular 3x3 plan's rows have one or two
+ * corners: those rows are one pass too, not a clear and one pass per corner. */
+static void gather(const float *x, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, float *A) {
+    const __mmask16 tail = (__mmask16)((1u << (C % 16)) - 1u);
+    const int whole = C - C % 16;
+    for (int64_t r = r0; r < r1; ++r) {
+        const int32_t *i = idx + 4 * r;
+        const float *q = w + 4 * r;
+        float *a = A + (r - r0) * C;
+        const int nz = _mm_movemask_ps(_mm_cmp_ps(_mm_loadu_ps(q), _mm_setzero_ps(), _CMP_NEQ_UQ));
+        const __m512 w0 = _mm512_set1_ps(q[0]), w1 = _mm512_set1_ps(q[1]), w2 = _mm512_set1_ps(q[2]);
+        const __m512 w3 = _mm512_set1_ps(q[3]);
+        if (nz == 15) {
+            const float *x0 = x + (int64_t)i[0] * C, *x1 = x + (int64_t)i[1] * C;
+            const float *x2 = x + (int64_t)i[2] * C, *x3 = x + (int64_t)i[3] * C;
+            int c = 0;
+            for (; c < whole; c += 16) {
+                __m512 v = _mm512_mul_ps(w0, _mm512_loadu_ps(x0 + c));
+                v = _mm512_fmadd_ps(w1, _mm512_loadu_ps(x1 + c), v);
+                v = _mm512_fmadd_ps(w2, _mm512_loadu_ps(x2 + c), v);
+                v = _mm512_fmadd_ps(w3, _mm512_loadu_ps(x3 + c), v);
+                _mm512_storeu_ps(a + c, v);
+            }
+            if (tail) {
+                __m512 v = _mm512_mul_ps(w0, _mm512_maskz_loadu_ps(tail, x0 + c));
+                v = _mm512_fmadd_ps(w1, _mm512_maskz_loadu_ps(tail, x1 + c), v);
+                v = _mm512_fmadd_ps(w2, _mm512_maskz_loadu_ps(tail, x2 + c), v);
+                v = _mm512_fmadd_ps(w3, _mm512_maskz_loadu_ps(tail, x3 + c), v);
+                _mm512_mask_storeu_ps(a + c, tail, v);
+            }
+            continue;
+        }
+        for (int c = 0; c < C; c += 16) {
+            const __mmask16 m = c < whole ? (__mmask16)0xFFFF : tail;
+            __m512 v = _mm512_setzero_ps();
+            if (nz & 1) v = _mm512_mul_ps(w0, _mm512_maskz_loadu_ps(m, x + (int64_t)i[0] * C + c));
+            if (nz & 2) v = _mm512_fmadd_ps(w1, _mm512_maskz_loadu_ps(m, x + (int64_t)i[1] * C + c), v);
+            if (nz & 4) v = _mm512_fmadd_ps(w2, _mm512_maskz_loadu_ps(m, x + (int64_t)i[2] * C + c), v);
+            if (nz & 8) v = _mm512_fmadd_ps(w3, _mm512_maskz_loadu_ps(m, x + (int64_t)i[3] * C + c), v);
+            _mm512_mask_storeu_ps(a + c, m, v);
+        }
+    }
+}
+#else
 static void gather(const float *x, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, float *A) {
     for (int64_t r = r0; r < r1; ++r) {
         const int32_t *i = idx + 4 * r;
@@ -271,16 +344,32 @@ static void gather(const float *x, int C, const int32_t *idx, const float *w, in
         }
     }
 }
+#endif
 
-/* gx[idx[r][j] * C + c] += w[r][j] * A[(r - r0) * C + c] (corners of weight 0 skipped) */
+/* gx[idx[r][j] * C + c] += w[r][j] * A[(r - r0) * C + c] (corners of weight 0 skipped; corner after corner, so
+ * corners of one row on the same pixel add up) */
 static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, const float *A) {
+#if defined(__AVX512F__)
+    const __mmask16 tail = (__mmask16)((1u << (C % 16)) - 1u);
+    const int whole = C - C % 16;
+#endif
     for (int64_t r = r0; r < r1; ++r) {
         const float *a = A + (r - r0) * C;
         for (int j = 0; j < 4; ++j) {
             const float q = w[4 * r + j];
             if (q == 0.0f) continue;
             float *g = gx + (int64_t)idx[4 * r + j] * C;
+#if defined(__AVX512F__)
+            const __m512 qv = _mm512_set1_ps(q);
+            int c = 0;
+            for (; c < whole; c += 16)
+                _mm512_storeu_ps(g + c, _mm512_fmadd_ps(qv, _mm512_loadu_ps(a + c), _mm512_loadu_ps(g + c)));
+            if (tail)
+                _mm512_mask_storeu_ps(g + c, tail, _mm512_fmadd_ps(qv, _mm512_maskz_loadu_ps(tail, a + c),
+                                                                   _mm512_maskz_loadu_ps(tail, g + c)));
+#else
             for (int c = 0; c < C; ++c) g[c] += q * a[c];
+#endif
         }
     }
 }
@@ -445,16 +534,17 @@ int omnidl_fc_forward(const float *x, int64_t x_img, int C, const int32_t *idx, 
                 const int m = (int)min64(block, min64(s1 - s, P - p));
                 float *o = out + b * out_img + p * ldo + c0;
                 gather(x + b * x_img, C, idx, w, p * K, (p + m) * K, A);
+#if HAVE_KERNEL
+                (void)wm;  /* o (m, c1 - c0) = A (m, KC) Wm[:, c0:c1] + bias[c0:c1] */
+                gemm_packed(m, c1 - c0, KC, A, KC, 1, wp + (int64_t)(c0 / NR) * KC * NR, o, ldo, 0,
+                            bias ? bias + c0 : NULL);
+#else
+                (void)wp;
                 int acc = 0;
                 if (bias) {
                     for (int i = 0; i < m; ++i) memcpy(o + i * ldo, bias + c0, sizeof(float) * (size_t)(c1 - c0));
                     acc = 1;
                 }
-#if HAVE_KERNEL
-                (void)wm;  /* o (m, c1 - c0) (+)= A (m, KC) Wm[:, c0:c1] */
-                gemm_packed(m, c1 - c0, KC, A, KC, 1, wp + (int64_t)(c0 / NR) * KC * NR, o, ldo, acc);
-#else
-                (void)wp;
                 blas_gemm('N', 'N', cout, m, KC, acc ? 1.0f : 0.0f, wm, cout, A, KC, o, (int)ldo);
 #endif
                 s += m;
@@ -491,6 +581,12 @@ int omnidl_dense_forward(const float *x, int64_t ldx, int C, int64_t n, const fl
         for (int64_t s = s0; s < s1 && c1 > c0;) {
             const int m = (int)min64(block, s1 - s);
             float *o = out + s * ldo + c0;
+#if HAVE_KERNEL
+            (void)wm;  /* o (m, c1 - c0) (+)= x rows (m, C) Wm[:, c0:c1] + bias[c0:c1] */
+            gemm_packed(m, c1 - c0, C, x + s * ldx, ldx, 1, wp + (int64_t)(c0 / NR) * C * NR, o, ldo, accumulate,
+                        bias ? bias + c0 : NULL);
+#else
+            (void)wp;
             int acc = accumulate;
             if (bias) {
                 for (int i = 0; i < m; ++i) {
@@ -502,11 +598,6 @@ int omnidl_dense_forward(const float *x, int64_t ldx, int C, int64_t n, const fl
                 }
                 acc = 1;
             }
-#if HAVE_KERNEL
-            (void)wm;  /* o (m, c1 - c0) (+)= x rows (m, C) Wm[:, c0:c1] */
-            gemm_packed(m, c1 - c0, C, x + s * ldx, ldx, 1, wp + (int64_t)(c0 / NR) * C * NR, o, ldo, acc);
-#else
-            (void)wp;
             blas_gemm('N', 'N', c1 - c0, m, C, acc ? 1.0f : 0.0f, wm + c0, cout, x + s * ldx, (int)ldx, o, (int)ldo);
 #endif
             if (relu)
@@ -598,7 +689,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
                     gather(x + b * x_img, C, idx, w, p * K, (p + m) * K, A);
 #if HAVE_KERNEL  /* gw[:, c0:c1] (KC, cout) += A^T g[:, c0:c1] */
                     pack_b(m, c1 - c0, g + c0, ldg, 1, gp);
-                    gemm_packed(KC, c1 - c0, m, A, 1, KC, gp, mygw + c0, cout, 1);
+                    gemm_packed(KC, c1 - c0, m, A, 1, KC, gp, mygw + c0, cout, 1, NULL);
 #else
                     blas_gemm('N', 'T', cout, KC, m, 1.0f, g, (int)ldg, A, KC, mygw, cout);
 #endif
@@ -611,7 +702,7 @@ int omnidl_fc_backward(const float *x, int64_t x_img, int C, const int32_t *idx,
                     const int m = (int)min64(block, min64(s1 - s, P - p));
                     const float *g = gout + b * g_img + p * ldg;
 #if HAVE_KERNEL
-                    gemm_packed(m, KC, cout, g, ldg, 1, wtp, A, KC, 0);  /* A (m, KC) = g Wm^T */
+                    gemm_packed(m, KC, cout, g, ldg, 1, wtp, A, KC, 0, NULL);  /* A (m, KC) = g Wm^T */
 #else
                     blas_gemm('T', 'N', KC, m, cout, 0.0f, wm, cout, g, (int)ldg, A, KC);
 #endif
@@ -702,7 +793,7 @@ int omnidl_gemm(int m, int n, int k, const float *a, int64_t ars, int64_t acs, c
         if (i1 > i0 && ap)
             gemm_packed_rows(i1 - i0, n, k, a + i0, acs, direct ? b : bp, c + i0 * ldc, ldc, mode, ap + t * a_floats);
         else if (i1 > i0)
-            gemm_packed(i1 - i0, n, k, a + i0 * ars, ars, acs, direct ? b : bp, c + i0 * ldc, ldc, mode);
+            gemm_packed(i1 - i0, n, k, a + i0 * ars, ars, acs, direct ? b : bp, c + i0 * ldc, ldc, mode, NULL);
     }
     _mm_sfence();  /* the non-temporal stores are visible to every thread before the caller reads c */
     free(ap);
@@ -926,7 +1017,7 @@ int omnidl_wino_forward(const float *x, int B, int H, int W, int C, int wrap, co
                 wino_input(xb, H, W, C, wrap, zero, t0, m, tw, V, wino_plane(m, C));
                 for (int xi = 0; xi < 16; ++xi)
                     gemm_packed(m, cout, C, V + xi * wino_plane(m, C), C, 1, up + xi * stride, M + xi * wino_plane(m, cout),
-                                cout, 0);
+                                cout, 0, NULL);
                 wino_output(M, m, cout, bias, out + b * (int64_t)H * W * cout, H, W, t0, tw, accumulate, relu);
                 s += m;
             }
@@ -1109,7 +1200,7 @@ int omnidl_wino_weight_grad(const float *x, const float *gy, int B, int H, int W
                     gemm_packed_rows(C, cout, m, V + xi * vplane, C, G + xi * gplane, U + xi * uplane, cout, add,
                                      ap + t * a_floats);
 #else
-                    gemm_packed(C, cout, m, V + xi * vplane, 1, C, G + xi * gplane, U + xi * uplane, cout, add);
+                    gemm_packed(C, cout, m, V + xi * vplane, 1, C, G + xi * gplane, U + xi * uplane, cout, add, NULL);
 #endif
                 }
 #pragma omp barrier
