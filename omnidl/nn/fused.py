@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from . import native
+from . import native, thin_layout
 from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows, finish_backward, new_accumulators,
                        save_columns_context, weight_matrix)
 
@@ -137,7 +137,7 @@ class _FusedConv(_FixedOffsetConv):
                                     plan.taps, P, B, _ptr(wm), _ptr(wp), Cout, _ptr(b_), rows.data_ptr(), P * Cout,
                                     Cout, block, torch.get_num_threads()), "forward")
         save_columns_context(ctx, x, weight, bias, plan, block, xr, weight.detach())  # the backward packs it
-        return rows if channels_last else rows.contiguous()
+        return rows if channels_last else thin_layout.to_nchw(rows)
 
     @staticmethod
     @torch.autograd.function.once_differentiable

@@ -42,6 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import thin_layout
 from .offsets import Pair, output_size
 
 
@@ -277,7 +278,7 @@ def finish_backward(ctx, grad_out: Tensor, parts: list[tuple[Tensor | None, Tens
     if gx is not None:
         gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
         if not ctx.channels_last:
-            gx = gx.contiguous()
+            gx = thin_layout.to_nchw(gx)
     if gwm is not None:
         gw = gwm.view(kh, kw, C, gwm.shape[1]).permute(3, 2, 0, 1)
     if ctx.needs_input_grad[2] and ctx.has_bias:

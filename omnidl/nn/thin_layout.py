@@ -78,6 +78,22 @@ class _ToChannelsLast(torch.autograd.Function):
         return gx, None, None
 
 
+def to_nchw(t: Tensor) -> Tensor:
+    """A channels-last map ``t (B, C, H, W)`` as contiguous (NCHW) memory: ``t.contiguous()``, for a float32 CPU map
+    outside autograd with the native library built in one native pass (the wrap's adjoint without a wrap): torch's
+    copy in this direction took 7.4 against 1.3 ms for 64 channels on 128x256 (2 threads), the other direction is
+    as fast as the native pass. ``t`` itself when already contiguous."""
+    if t.is_contiguous():
+        return t
+    if (t.dim() == 4 and t.dtype == torch.float32 and t.device.type == "cpu"
+            and t.is_contiguous(memory_format=torch.channels_last) and not (torch.is_grad_enabled() and t.requires_grad)
+            and not capturing() and native.library() is not None):
+        out = torch.empty(t.shape, dtype=t.dtype)
+        _run("omnidl_wrap_from_nhwc", out, t, 0, 0)
+        return out
+    return t.contiguous()
+
+
 def unwrap(g: Tensor, left: int, right: int) -> Tensor:
     """The adjoint of the wrap, ``(..., left + W + right)`` -> ``(..., W)``: the middle columns copied once and the
     wrapped strips added onto the columns they came from (differentiable: autograd records the in-place adds on the

@@ -30,6 +30,32 @@ def test_the_layout_kernels_equal_the_wrap_and_its_adjoint(B, C, H, W, left, rig
     assert x.grad.is_contiguous()
 
 
+# (shape, dtype, requires grad, takes the native pass)
+TO_NCHW = [((2, 19, 3, 37), torch.float32, False, True), ((1, 64, 8, 16), torch.float32, False, True),
+           ((1, 3, 1, 5), torch.float32, False, True), ((1, 8, 4, 6), torch.float64, False, False),
+           ((1, 8, 4, 6), torch.float32, True, False)]
+
+
+@needs_native
+@pytest.mark.parametrize("shape,dtype,grad,native_pass", TO_NCHW)
+def test_to_nchw_equals_contiguous(shape, dtype, grad, native_pass, monkeypatch):
+    g = torch.Generator().manual_seed(shape[1])
+    t = torch.randn(shape, generator=g, dtype=dtype).contiguous(memory_format=torch.channels_last)
+    t.requires_grad_(grad)
+    calls = []
+    run = thin_layout._run
+    monkeypatch.setattr(thin_layout, "_run", lambda *a: (calls.append(a[0]), run(*a)))
+    out = thin_layout.to_nchw(t)
+    assert out.is_contiguous() and out.dtype == dtype
+    torch.testing.assert_close(out, t.contiguous(), rtol=0, atol=0)
+    assert calls == (["omnidl_wrap_from_nhwc"] if native_pass else [])
+
+
+def test_to_nchw_keeps_a_contiguous_map():
+    t = torch.randn(1, 4, 3, 5)
+    assert thin_layout.to_nchw(t) is t
+
+
 # (name, module, x shape, takes channels-last)
 LAYERS = [
     ("semantic-like head: 32 -> 14, 3x3 wrapped at 128x256",
