@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import native, winograd
+from . import native, thin_layout, winograd
 from .capture import capturing
 from .offsets import _pair
 from .sampling import _is_channels_last
@@ -97,8 +97,8 @@ def _pack(lib, weight: Tensor, flip: bool) -> Tensor:
 
 def _like(t: Tensor, x: Tensor) -> Tensor:
     """``t`` (channels-last) in the memory format of ``x`` (as ``F.conv2d``: channels-last also for a channel slice
-    of such a map)."""
-    return t if _is_channels_last(x) else t.contiguous()
+    of such a map; NCHW by :func:`~omnidl.nn.thin_layout.to_nchw`)."""
+    return t if _is_channels_last(x) else thin_layout.to_nchw(t)
 
 
 def _reference(x: Tensor, weight: Tensor, bias: Tensor | None, wrap: int) -> Tensor:
