@@ -153,8 +153,12 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
             _mm256_storeu_ps(tmp, r[i][0]);
             _mm256_storeu_ps(tmp + 8, r[i][1]);
             for (int j = 0; j < nr; ++j) {
-                const float cj = accumulate == 1 ? (bias ? ci[j] + bias[j] : ci[j]) : 0.0f;
-                ci[j] = accumulate == 1 ? tmp[j] + cj : bias ? tmp[j] + bias[j] : tmp[j];
+                float v = tmp[j];
+                if (accumulate == 1)
+                    v += bias ? ci[j] + bias[j] : ci[j];
+                else if (bias)
+                    v += bias[j];
+                ci[j] = v;
             }
         }
     }
