@@ -281,10 +281,9 @@ static void restore_blas_threads(int prev) {
  * (outside the image, or exactly on a pixel) are not read, so a non-finite pixel reaches only the taps that
  * sample it, as in deform_conv2d */
 #if defined(__AVX512F__)
-/* 16 channels per step, the sum w0 x0 then three fused multiply-adds; a row with a corner of weight 0 takes the
- * masked-load path, and a tail of C % 16 channels masked loads and stores (nothing beyond C is read or written:
- * the 3-channel stems are one masked step per row). A third of an equirectangular 3x3 plan's rows have one or two
- * corners: those rows are one pass too, not a clear and one pass per corner. */
+/* 16 channels per step, the first corner's product then fused multiply-adds, corners of weight 0 skipped (one pass
+ * per row also for the third of an equirectangular 3x3 plan's rows that have one or two corners); the last step of
+ * a row masks C % 16 channels, so nothing beyond C is read or written (a 3-channel stem is one masked step). */
 static void gather(const float *x, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, float *A) {
     const __mmask16 tail = (__mmask16)((1u << (C % 16)) - 1u);
     const int whole = C - C % 16;
@@ -295,26 +294,6 @@ static void gather(const float *x, int C, const int32_t *idx, const float *w, in
         const int nz = _mm_movemask_ps(_mm_cmp_ps(_mm_loadu_ps(q), _mm_setzero_ps(), _CMP_NEQ_UQ));
         const __m512 w0 = _mm512_set1_ps(q[0]), w1 = _mm512_set1_ps(q[1]), w2 = _mm512_set1_ps(q[2]);
         const __m512 w3 = _mm512_set1_ps(q[3]);
-        if (nz == 15) {
-            const float *x0 = x + (int64_t)i[0] * C, *x1 = x + (int64_t)i[1] * C;
-            const float *x2 = x + (int64_t)i[2] * C, *x3 = x + (int64_t)i[3] * C;
-            int c = 0;
-            for (; c < whole; c += 16) {
-                __m512 v = _mm512_mul_ps(w0, _mm512_loadu_ps(x0 + c));
-                v = _mm512_fmadd_ps(w1, _mm512_loadu_ps(x1 + c), v);
-                v = _mm512_fmadd_ps(w2, _mm512_loadu_ps(x2 + c), v);
-                v = _mm512_fmadd_ps(w3, _mm512_loadu_ps(x3 + c), v);
-                _mm512_storeu_ps(a + c, v);
-            }
-            if (tail) {
-                __m512 v = _mm512_mul_ps(w0, _mm512_maskz_loadu_ps(tail, x0 + c));
-                v = _mm512_fmadd_ps(w1, _mm512_maskz_loadu_ps(tail, x1 + c), v);
-                v = _mm512_fmadd_ps(w2, _mm512_maskz_loadu_ps(tail, x2 + c), v);
-                v = _mm512_fmadd_ps(w3, _mm512_maskz_loadu_ps(tail, x3 + c), v);
-                _mm512_mask_storeu_ps(a + c, tail, v);
-            }
-            continue;
-        }
         for (int c = 0; c < C; c += 16) {
             const __mmask16 m = c < whole ? (__mmask16)0xFFFF : tail;
             __m512 v = _mm512_setzero_ps();
