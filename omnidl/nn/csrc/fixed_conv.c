@@ -344,12 +344,11 @@ static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_
             float *g = gx + (int64_t)idx[4 * r + j] * C;
 #if defined(__AVX512F__)
             const __m512 qv = _mm512_set1_ps(q);
-            int c = 0;
-            for (; c < whole; c += 16)
-                _mm512_storeu_ps(g + c, _mm512_fmadd_ps(qv, _mm512_loadu_ps(a + c), _mm512_loadu_ps(g + c)));
-            if (tail)
-                _mm512_mask_storeu_ps(g + c, tail, _mm512_fmadd_ps(qv, _mm512_maskz_loadu_ps(tail, a + c),
-                                                                   _mm512_maskz_loadu_ps(tail, g + c)));
+            for (int c = 0; c < C; c += 16) {
+                const __mmask16 m = c < whole ? (__mmask16)0xFFFF : tail;
+                _mm512_mask_storeu_ps(g + c, m, _mm512_fmadd_ps(qv, _mm512_maskz_loadu_ps(m, a + c),
+                                                                _mm512_maskz_loadu_ps(m, g + c)));
+            }
 #else
             for (int c = 0; c < C; ++c) g[c] += q * a[c];
 #endif
