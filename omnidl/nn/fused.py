@@ -25,7 +25,7 @@ from torch import Tensor
 
 from . import native, thin_layout
 from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows, finish_backward, new_accumulators,
-                       save_columns_context, weight_matrix)
+                       save_columns_context, weight_channels_last, weight_matrix)
 
 def l2_cache_bytes(root: str = "/sys/devices/system/cpu/cpu0/cache") -> int | None:
     """Size of a core's level-2 cache from Linux's sysfs (``None`` where it is not listed)."""
@@ -96,10 +96,11 @@ def _packed(lib, weight: Tensor, transpose: bool, keep: bool | None = None) -> T
     hit = _PACKED.get(key) if keep else None
     if hit is not None and hit[0]() is weight and hit[1] == weight._version and hit[2] == weight.data_ptr():
         return hit[3]
-    wc = weight.detach().contiguous()
+    cl = weight_channels_last(weight)                   # (Cout, kh, kw, C) in memory: read as it lies
+    wc = weight.detach() if cl else weight.detach().contiguous()
     wp = torch.empty(lib.omnidl_fc_packed_floats(*((Cout, KC) if transpose else (KC, Cout))), dtype=torch.float32)
-    _call(lib.omnidl_fc_pack(wc.data_ptr(), Cout, C, kh * kw, int(transpose), wp.data_ptr(), torch.get_num_threads()),
-          "weight packing")
+    _call(lib.omnidl_fc_pack(wc.data_ptr(), Cout, C, kh * kw, int(cl), int(transpose), wp.data_ptr(),
+                             torch.get_num_threads()), "weight packing")
     if keep:
         _PACKED[key] = (weakref.ref(weight, lambda _, k=key: _PACKED.pop(k, None)), weight._version,
                         weight.data_ptr(), wp)

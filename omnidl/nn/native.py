@@ -143,10 +143,14 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_fc_forward.restype = i
     lib.omnidl_fc_backward.argtypes = [p, n, i, p, p, i, n, i, p, p, i, p, n, n, p, n, p, n, i]
     lib.omnidl_fc_backward.restype = i
-    lib.omnidl_fc_pack.argtypes = [p, i, i, i, i, p, i]
+    lib.omnidl_fc_pack.argtypes = [p, i, i, i, i, i, p, i]
     lib.omnidl_fc_pack.restype = i
     lib.omnidl_fc_packed_floats.argtypes = [i, i]
     lib.omnidl_fc_packed_floats.restype = n
+    lib.omnidl_fc_gather.argtypes = [p, n, i, p, p, i, n, i, p, i]
+    lib.omnidl_fc_gather.restype = i
+    lib.omnidl_fc_scatter.argtypes = [p, n, i, p, p, i, n, i, p, i]
+    lib.omnidl_fc_scatter.restype = i
     lib.omnidl_dense_forward.argtypes = [p, n, i, n, p, p, i, p, p, n, i, i, n, i]
     lib.omnidl_dense_forward.restype = i
     lib.omnidl_gemm.argtypes = [i, i, i, p, n, n, p, n, n, p, n, i, i]

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from omnidl.cameras.base import Camera
 from omnidl.cameras.resolve import resolve_camera
 
-from . import projected_taps
+from . import plan_columns, projected_taps
 from .fused import fused_conv2d, fused_supported
 from .offsets import Pair, compute_sampling
 from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
@@ -215,13 +215,16 @@ class ProjectedConv2d(nn.Conv2d):
     def _fast(self, x: Tensor, weight: Tensor, bias: Tensor | None, key: tuple) -> Tensor:
         """The fast backend on CPU float32: with few output channels and no autograd graph the product onto the taps
         and a sampled sum (:mod:`.projected_taps`, CPU float32/float64), else the native fused gather+product kernel
-        (:mod:`.fused`), else (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and
+        (:mod:`.fused`; a weight-heavy layer in training: gathered columns and the unfolded product,
+        :mod:`.plan_columns`), else (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and
         whenever ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`)."""
         plan = get_plan(key, x.device, x.dtype)
         if self.chunk_positions is None:
             if projected_taps.pays(x, weight, bias, plan):
                 return projected_taps.projected_taps_conv2d(x, weight, bias, plan)
             if fused_supported(x, weight, plan):
+                if plan_columns.pays(x, weight, plan):    # weight-heavy layer in training: columns + product
+                    return plan_columns.columns_conv2d(x, weight, bias, plan)
                 return fused_conv2d(x, weight, bias, plan)
             if tiled_supported(x, weight):
                 return tiled_conv2d(x, weight, bias, plan)

@@ -85,13 +85,26 @@ def to_nchw(t: Tensor) -> Tensor:
     as fast as the native pass. ``t`` itself when already contiguous."""
     if t.is_contiguous():
         return t
-    if (t.dim() == 4 and t.dtype == torch.float32 and t.device.type == "cpu"
-            and t.is_contiguous(memory_format=torch.channels_last) and not (torch.is_grad_enabled() and t.requires_grad)
-            and not capturing() and native.library() is not None):
+    if t.dim() == 4 and t.is_contiguous(memory_format=torch.channels_last) and not (torch.is_grad_enabled()
+                                                                                    and t.requires_grad):
         out = torch.empty(t.shape, dtype=t.dtype)
-        _run("omnidl_wrap_from_nhwc", out, t, 0, 0)
-        return out
+        if nhwc_into_nchw(t.permute(0, 2, 3, 1), out):
+            return out
     return t.contiguous()
+
+
+def nhwc_into_nchw(src: Tensor, out: Tensor) -> bool:
+    """Writes ``src (B, H, W, C)`` into ``out (B, C, H, W)`` (both contiguous) in one native pass and returns
+    ``True``; ``False``, nothing written, where that pass does not run (not float32 CPU memory, no native library,
+    captured by ``torch.compile``/export)."""
+    if not (src.dtype == out.dtype == torch.float32 and src.device.type == out.device.type == "cpu"
+            and src.is_contiguous() and out.is_contiguous() and not capturing() and native.library() is not None):
+        return False
+    B, H, W, C = src.shape
+    if tuple(out.shape) != (B, C, H, W):
+        raise ValueError(f"nhwc_into_nchw: out must be {(B, C, H, W)}, got {tuple(out.shape)}")
+    _run("omnidl_wrap_from_nhwc", out, src, 0, 0)
+    return True
 
 
 def unwrap(g: Tensor, left: int, right: int) -> Tensor:

@@ -39,7 +39,7 @@ from torch import Tensor, nn
 from . import native, thin_layout, winograd_train
 from .capture import capturing
 from .offsets import _pair, output_size
-from .sampling import _is_channels_last
+from .sampling import _is_channels_last, weight_channels_last
 
 #: the unfolded product runs where ``out_channels >= WEIGHT_HEAVY_RATIO * B * Ho * Wo`` (the weight at least this
 #: many times the unfolded input, which has ``B * Ho * Wo`` columns of the same length as a weight row)
@@ -114,7 +114,7 @@ def unfold_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride:
         cols = (x if stride == (1, 1) else x[:, :, ::stride[0], ::stride[1]]).reshape(B, C, ho * wo)
     else:
         cols = F.unfold(x, (kh, kw), dilation=dilation, padding=padding, stride=stride)    # (B, C*kh*kw, L)
-    if _rows_channels_last(weight):
+    if weight_channels_last(weight):
         # a channels-last weight is (Cout, kh, kw, C) in memory: a view of it as rows, the columns re-ordered to
         # match (a copy of the small operand, not of the weight)
         cols = cols.view(B, C, kh * kw, -1).transpose(1, 2).reshape(B, kh * kw * C, -1)
@@ -124,14 +124,10 @@ def unfold_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride:
     return y
 
 
-def _rows_channels_last(weight: Tensor) -> bool:
-    return weight.is_contiguous(memory_format=torch.channels_last) and not weight.is_contiguous()
-
-
 def _rows(weight: Tensor) -> Tensor:
     """``weight (Cout, C, kh, kw)`` as the matrix ``(Cout, K)`` whose rows lie in memory as the weight's: a view
     (``K`` runs over ``(C, kh, kw)``, or over ``(kh, kw, C)`` for a channels-last weight)."""
-    if _rows_channels_last(weight):
+    if weight_channels_last(weight):
         return weight.permute(0, 2, 3, 1).reshape(weight.shape[0], -1)
     return weight.reshape(weight.shape[0], -1)
 
@@ -234,7 +230,7 @@ class _Product(torch.autograd.Function):
             if torch.is_grad_enabled() or not (REUSE_GRAD_BUFFERS and weight.is_leaf and _HAS_USE_COUNT):
                 gw = _product(g, _side_by_side(cols).t())  # differentiable under create_graph; shaped as the weight
                 gw = (gw.view(cout, weight.shape[2], weight.shape[3], weight.shape[1]).permute(0, 3, 1, 2)
-                      if _rows_channels_last(weight) else gw.view(weight.shape))
+                      if weight_channels_last(weight) else gw.view(weight.shape))
             else:
                 gw = _grad_buffer(weight)
                 _product(g, _side_by_side(cols).t(), out=_rows(gw))

@@ -377,3 +377,23 @@ def test_wide_vectors_only_on_avx512_x86(machine, cpuinfo, expected, monkeypatch
     monkeypatch.setattr(native.Path, "read_text",
                         lambda self, *a, **k: cpuinfo if str(self) == "/proc/cpuinfo" else real_read(self, *a, **k))
     assert native._wide_vectors() == expected
+
+
+@pytest.mark.parametrize("cout", [17, 64])
+def test_a_channels_last_weight_is_packed_as_it_lies(cout):
+    """A channels-last weight ((Cout, kh, kw, C) memory) gives the contiguous weight's results: inference (kept
+    packing), training (forward and transposed packing) and a weight gradient in the weight's own layout."""
+    torch.manual_seed(cout)
+    cam = Equirectangular(width=48, height=24)
+    m = ProjectedConv2d(24, cout, 3, padding=1, camera=cam)
+    m_cl = ProjectedConv2d(24, cout, 3, padding=1, camera=cam)
+    m_cl.load_state_dict(m.state_dict())
+    m_cl = m_cl.to(memory_format=torch.channels_last)
+    assert not m_cl.weight.is_contiguous()
+    x = torch.randn(2, 24, 12, 24)
+    with torch.no_grad():
+        _close(m_cl(x), m(x), "inference")
+    outs = [_outputs(mm, x) for mm in (m_cl, m)]
+    for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), *outs):
+        _close(a, b, name)
+    assert outs[0][2].stride() == m_cl.weight.stride()

@@ -145,3 +145,14 @@ def test_differentiable_twice():
     for a, b in zip(fast, ref):
         torch.testing.assert_close(a, b)
     torch.testing.assert_close(fast[1], pad_panorama(v, (2, 1)))
+
+
+def test_nhwc_into_nchw_writes_the_transpose_or_declines():
+    src = torch.randn(2, 3, 5, 7)
+    out = torch.empty(2, 7, 3, 5)
+    assert thin_layout.nhwc_into_nchw(src, out) == (native.library() is not None)
+    if native.library() is not None:
+        assert torch.equal(out, src.permute(0, 3, 1, 2))
+        with pytest.raises(ValueError, match=r"out must be \(2, 7, 3, 5\)"):
+            thin_layout.nhwc_into_nchw(src, torch.empty(2, 3, 5, 7))
+    assert not thin_layout.nhwc_into_nchw(src.double(), out.double())          # float32 only: nothing written

@@ -329,12 +329,13 @@ static void gather(const float *x, int C, const int32_t *idx, const float *w, in
 }
 #endif
 
-/* gx[idx[r][j] * C + c] += w[r][j] * A[(r - r0) * C + c] (corners of weight 0 skipped; corner after corner, so
- * corners of one row on the same pixel add up) */
-static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, const float *A) {
+/* gx[idx[r][j] * C + c] += w[r][j] * A[(r - r0) * C + c] for the channels c in [c0, c1) (corners of weight 0
+ * skipped; corner after corner, so corners of one row on the same pixel add up) */
+static void scatter_span(float *gx, int C, int c0, int c1, const int32_t *idx, const float *w, int64_t r0, int64_t r1,
+                         const float *A) {
 #if defined(__AVX512F__)
-    const __mmask16 tail = (__mmask16)((1u << (C % 16)) - 1u);
-    const int whole = C - C % 16;
+    const __mmask16 tail = (__mmask16)((1u << ((c1 - c0) % 16)) - 1u);
+    const int whole = c1 - (c1 - c0) % 16;
 #endif
     for (int64_t r = r0; r < r1; ++r) {
         const float *a = A + (r - r0) * C;
@@ -344,16 +345,20 @@ static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_
             float *g = gx + (int64_t)idx[4 * r + j] * C;
 #if defined(__AVX512F__)
             const __m512 qv = _mm512_set1_ps(q);
-            for (int c = 0; c < C; c += 16) {
+            for (int c = c0; c < c1; c += 16) {
                 const __mmask16 m = c < whole ? (__mmask16)0xFFFF : tail;
                 _mm512_mask_storeu_ps(g + c, m, _mm512_fmadd_ps(qv, _mm512_maskz_loadu_ps(m, a + c),
                                                                 _mm512_maskz_loadu_ps(m, g + c)));
             }
 #else
-            for (int c = 0; c < C; ++c) g[c] += q * a[c];
+            for (int c = c0; c < c1; ++c) g[c] += q * a[c];
 #endif
         }
     }
+}
+
+static void scatter(float *gx, int C, const int32_t *idx, const float *w, int64_t r0, int64_t r1, const float *A) {
+    scatter_span(gx, C, 0, C, idx, w, r0, r1, A);
 }
 
 /* which products run: 2 on this file's AVX-512 kernel, 1 on its AVX2/FMA kernel, 0 BLAS sgemm */
@@ -384,14 +389,14 @@ int64_t omnidl_fc_packed_floats(int k, int n) {
 #endif
 }
 
-/* The layer's weight (cout, C, K) contiguous, i.e. Wm[t * C + c][co] = wt[(co * C + c) * K + t], packed for the
- * kernel: transpose = 0, Wm (K*C, cout) in NR-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
+/* The layer's weight (cout, C, K), i.e. Wm[t * C + c][co] = wt[(co * C + c) * K + t] (contiguous) or
+ * wt[(co * K + t) * C + c] (`cl`: a channels-last weight, (cout, K, C) in memory), packed for the kernel: transpose = 0, Wm (K*C, cout) in NR-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
  * of NR of its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Weight rows are
  * re-ordered (c, t) -> (t, c) in a per-thread buffer (NR rows for a forward panel, one row for the transposed
  * packing), so that every cache line of `wp` is written whole, once; `nthreads` OpenMP threads share the
  * panels (forward) or rows (transposed). Returns 0, or 1 when a buffer cannot be allocated. No-op on the BLAS
  * path. */
-int omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, float *wp, int nthreads) {
+int omnidl_fc_pack(const float *wt, int cout, int C, int K, int cl, int transpose, float *wp, int nthreads) {
     int err = 0;
     (void)nthreads;  /* unused without OpenMP */
 #if HAVE_KERNEL
@@ -409,8 +414,11 @@ int omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, float
                 const int nr = cout - q * NR < NR ? cout - q * NR : NR;
                 for (int j = 0; j < nr; ++j) {  /* rows of this panel, (t, c) order */
                     const float *src = wt + (int64_t)(q * NR + j) * KC;
-                    for (int c = 0; c < C; ++c)
-                        for (int t = 0; t < K; ++t) buf[j * KC + (int64_t)t * C + c] = src[(int64_t)c * K + t];
+                    if (cl)
+                        memcpy(buf + j * KC, src, sizeof(float) * (size_t)KC);
+                    else
+                        for (int c = 0; c < C; ++c)
+                            for (int t = 0; t < K; ++t) buf[j * KC + (int64_t)t * C + c] = src[(int64_t)c * K + t];
                 }
                 for (int64_t p = 0; p < KC; ++p) {
                     int j = 0;
@@ -423,14 +431,17 @@ int omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, float
 #pragma omp for schedule(static)
             for (int co = 0; co < cout; ++co) {
                 if (!buf) continue;
-                const float *src = wt + co * KC;
-                for (int c = 0; c < C; ++c)
-                    for (int t = 0; t < K; ++t) buf[(int64_t)t * C + c] = src[(int64_t)c * K + t];
+                const float *src = wt + co * KC, *row = buf;
+                if (cl)
+                    row = src;
+                else
+                    for (int c = 0; c < C; ++c)
+                        for (int t = 0; t < K; ++t) buf[(int64_t)t * C + c] = src[(int64_t)c * K + t];
                 for (int64_t q = 0; q < panels; ++q) {
                     float *d = wp + q * cout * NR + (int64_t)co * NR;
                     const int nr = KC - q * NR < NR ? (int)(KC - q * NR) : NR;
                     int j = 0;
-                    for (; j < nr; ++j) d[j] = buf[q * NR + j];
+                    for (; j < nr; ++j) d[j] = row[q * NR + j];
                     for (; j < NR; ++j) d[j] = 0.0f;
                 }
             }
@@ -438,7 +449,7 @@ int omnidl_fc_pack(const float *wt, int cout, int C, int K, int transpose, float
         free(buf);
     }
 #else
-    (void)wt; (void)cout; (void)C; (void)K; (void)transpose; (void)wp; (void)nthreads;
+    (void)wt; (void)cout; (void)C; (void)K; (void)cl; (void)transpose; (void)wp; (void)nthreads;
 #endif
     return err;
 }
@@ -469,6 +480,38 @@ static void channel_share(int cout, int t, int nt, int *c0, int *c1) {
     const int panels = (cout + PANEL - 1) / PANEL;
     *c0 = PANEL * (panels * t / nt);
     *c1 = (int)min64(cout, PANEL * (panels * (t + 1) / nt));
+}
+
+/* The taps of B images (x: B images of x_img floats, channels-last rows of C) as one row per output position:
+ * A[((b * P + p) * K + t) * C + c] for the plan's P positions of K taps, on `nthreads` OpenMP threads split by
+ * positions (omnidl.nn.plan_columns: the columns of a weight-heavy layer in training). Returns 0. */
+int omnidl_fc_gather(const float *x, int64_t x_img, int C, const int32_t *idx, const float *w, int K, int64_t P, int B,
+                     float *A, int nthreads) {
+    (void)nthreads;  /* unused without OpenMP */
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (int64_t s = 0; s < (int64_t)B * P; ++s) {
+        const int64_t b = s / P, p = s % P;
+        gather(x + b * x_img, C, idx, w, p * K, (p + 1) * K, A + s * K * (int64_t)C);
+    }
+    return 0;
+}
+
+/* The adjoint of omnidl_fc_gather: gx (B images of gx_img floats, zeroed or accumulated into) += S^T A, on
+ * `nthreads` OpenMP threads, each over every position for its share of the channels (in steps of 16: no two
+ * threads write one float, nor one cache line where C is a multiple of 16). Returns 0. */
+int omnidl_fc_scatter(float *gx, int64_t gx_img, int C, const int32_t *idx, const float *w, int K, int64_t P, int B,
+                      const float *A, int nthreads) {
+    (void)nthreads;
+#pragma omp parallel num_threads(nthreads)
+    {
+        int t, nt;
+        team(&t, &nt);
+        const int steps = (C + 15) / 16;
+        const int c0 = 16 * (steps * t / nt), c1 = (int)min64(C, 16 * (steps * (t + 1) / nt));
+        for (int b = 0; c1 > c0 && b < B; ++b)
+            scatter_span(gx + b * gx_img, C, c0, c1, idx, w, 0, P * K, A + (int64_t)b * P * K * C);
+    }
+    return 0;
 }
 
 /* The calling OpenMP thread's share of a forward: rows [*s0, *s1) of `total` and output channels [*c0, *c1), split
