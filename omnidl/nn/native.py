@@ -173,6 +173,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_lstm_padded_width.restype = n
     lib.omnidl_prelu_backward.argtypes = [p, p, p, i, n, n, n, p, p, i]
     lib.omnidl_prelu_backward.restype = i
+    lib.omnidl_prelu_backward_cl.argtypes = [p, p, p, i, n, n, n, p, p, i]
+    lib.omnidl_prelu_backward_cl.restype = i
     lib.omnidl_upsample_adjoint.argtypes = [p, n, n, n, n, n, p, p, p, p, p, p, p, i]
     lib.omnidl_upsample_adjoint.restype = i
     lib.omnidl_expand_forward.argtypes = [p, n, i, n, p, p, i, i, p, i, p, i]

@@ -23,7 +23,8 @@ def _close(a, b, tol):
     torch.testing.assert_close(a / scale, b / scale, rtol=0, atol=tol)
 
 
-# (name, input shape, slopes, dtype, channels-last, takes the native backward)
+# (name, input shape, slopes, dtype, channels-last (True: map and gradient; "x only": the map), takes the native
+# backward)
 CASES = [
     ("a plane longer than one block, with a tail", (2, 3, 37, 41), 3, torch.float32, False, True),
     ("a plane shorter than one block", (1, 5, 3, 4), 5, torch.float32, False, True),
@@ -32,7 +33,10 @@ CASES = [
     ("one slope for all channels", (2, 4, 9, 30), 1, torch.float32, False, True),
     ("3-d input (B, C, N)", (3, 6, 100), 6, torch.float32, False, True),
     ("one channel", (2, 1, 33, 33), 1, torch.float32, False, True),
-    ("channels-last: PyTorch's own", (1, 8, 5, 6), 8, torch.float32, True, False),
+    ("channels-last, one chunk of channels", (1, 8, 5, 6), 8, torch.float32, True, True),
+    ("channels-last, chunks of channels with a tail, sums flushed", (2, 150, 9, 17), 150, torch.float32, True, True),
+    ("channels-last, one slope for all channels", (1, 70, 4, 30), 1, torch.float32, True, True),
+    ("channels-last map, contiguous gradient: PyTorch's own", (1, 8, 5, 6), 8, torch.float32, "x only", False),
     ("float64: PyTorch's own", (1, 4, 5, 6), 4, torch.float64, False, False),
     ("float16: PyTorch's own", (1, 4, 5, 6), 4, torch.float16, False, False),
 ]
@@ -48,6 +52,8 @@ def test_equals_f_prelu_with_gradients(name, shape, slopes, dtype, cl, native_pa
     x.requires_grad_()
     a = (torch.rand(slopes, generator=g) * 0.5).to(dtype).requires_grad_()
     up = torch.randn(shape, generator=g).to(dtype)
+    if cl is True:                                 # the gradient in the map's layout, as the layers after it give it
+        up = up.contiguous(memory_format=torch.channels_last)
     calls = []
     real = P._composite_backward
     monkeypatch.setattr(P, "_composite_backward", lambda *t: calls.append(1) or real(*t))
@@ -59,6 +65,8 @@ def test_equals_f_prelu_with_gradients(name, shape, slopes, dtype, cl, native_pa
     _close(gx.float(), rx.float(), tol)
     _close(ga.float(), ra.float(), tol)
     assert ga.dtype == a.dtype and ga.shape == a.shape
+    if cl is True:
+        assert gx.is_contiguous(memory_format=torch.channels_last)
     if dtype == torch.float32 and native.library() is not None:
         ran = type(y.grad_fn).__name__ == "_PReLUBackward" and not calls
         assert ran is native_path                  # the native backward ran, or PyTorch's did

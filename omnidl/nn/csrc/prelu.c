@@ -57,3 +57,55 @@ int omnidl_prelu_backward(const float *x, const float *g, const float *a, int pe
     (void)nthreads;
     return 0;
 }
+
+/* The same on channels-last (B, N, C) maps (x, g, gx; ga as above): each OpenMP thread takes a share of the
+ * channels (whole steps of CL_STEP) for every position, so no two threads add into one channel's sum, and runs
+ * them in chunks of at most CL_STEP channels with float sums per channel flushed into double every CL_FLUSH
+ * positions. Returns 0. */
+#define CL_STEP 64
+#define CL_FLUSH 64
+int omnidl_prelu_backward_cl(const float *x, const float *g, const float *a, int per_channel, int64_t B, int64_t C,
+                             int64_t N, float *gx, double *ga, int nthreads) {
+    const int64_t steps = (C + CL_STEP - 1) / CL_STEP;
+#ifdef _OPENMP
+#pragma omp parallel num_threads(nthreads)
+#endif
+    {
+        int t = 0, nt = 1;
+#ifdef _OPENMP
+        t = omp_get_thread_num();
+        nt = omp_get_num_threads();
+#endif
+        const int64_t s0 = steps * t / nt, s1 = steps * (t + 1) / nt;
+        for (int64_t b = 0; b < B; ++b)
+            for (int64_t c0 = s0 * CL_STEP; c0 < C && c0 < s1 * CL_STEP; c0 += CL_STEP) {
+                const int64_t w = C - c0 < CL_STEP ? C - c0 : CL_STEP;
+                float s[CL_STEP], acc[CL_STEP];
+                double total[CL_STEP];
+                for (int64_t c = 0; c < w; ++c) {
+                    s[c] = a[per_channel ? c0 + c : 0];
+                    acc[c] = 0.f;
+                    total[c] = 0.0;
+                }
+                for (int64_t i = 0; i < N; ++i) {
+                    const int64_t o = (b * N + i) * C + c0;
+                    const float *restrict xi = x + o, *restrict gi = g + o;
+                    float *restrict gxi = gx + o;
+                    for (int64_t c = 0; c < w; ++c) {
+                        const float xv = xi[c], gv = gi[c], sg = s[c] * gv, xg = xv * gv;
+                        const int pos = xv > 0.f;
+                        gxi[c] = pos ? gv : sg;
+                        acc[c] += pos ? 0.f : xg;
+                    }
+                    if ((i + 1) % CL_FLUSH == 0 || i + 1 == N)
+                        for (int64_t c = 0; c < w; ++c) {
+                            total[c] += acc[c];
+                            acc[c] = 0.f;
+                        }
+                }
+                for (int64_t c = 0; c < w; ++c) ga[b * C + c0 + c] = total[c];
+            }
+    }
+    (void)nthreads;
+    return 0;
+}
