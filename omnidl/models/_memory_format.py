@@ -4,8 +4,11 @@ On CPU (oneDNN) a channels-last forward is as fast or faster than NCHW and the P
 writes its outputs in place only in channels-last, but the backward of dense convolutions is 1.1-1.6x slower
 in channels-last (3x3 convolutions at batch 1, 2 threads: 64 ch 128x256 81 vs 49 ms forward+backward,
 1024 ch 4x8 85 vs 63 ms), and a FreDSNet-ResNet-50 training step at 256x128 took 1.71 s against 1.28 s. The
-policy ``"auto"`` therefore runs channels-last in eval mode, and in training only when the model has
-ProjectedConv2d layers (whose own backward prefers channels-last: 2.00 s against 2.49 s for FreDSNet-Equi).
+policy ``"auto"`` therefore runs channels-last in eval mode and NCHW in training. Models with ProjectedConv2d
+layers had trained channels-last (FreDSNet-Equi 2.00 s against 2.49 s in NCHW) until the weight-heavy layers took
+gathered columns (:mod:`omnidl.nn.plan_columns`) and the fused kernel packed channels-last weights as they lie:
+since then NCHW is faster for them too (FreDSNet-Equi step at 256x128, 2 threads, interleaved, load 1.0-1.6:
+1019 against 1348 ms and 953 against 1165 ms; HoLiNet-ResNet-50-Equi level, 388 against 387-398 ms).
 Switching converts the parameters in place (the same ``Parameter`` objects, so optimisers keep them).
 """
 from __future__ import annotations
@@ -15,7 +18,6 @@ from typing import Literal, Union
 import torch
 from torch import Tensor, nn
 
-from omnidl.nn.projected_conv import ProjectedConv2d
 
 ChannelsLast = Union[bool, Literal["auto"]]
 
@@ -39,10 +41,7 @@ class MemoryFormatPolicy:
     def _wants_channels_last(self) -> bool:
         if self.channels_last != "auto":
             return bool(self.channels_last)
-        if not self.training:  # type: ignore[attr-defined]
-            return True
-        return any(isinstance(m, ProjectedConv2d) and m.camera is not None
-                   for m in self.modules())  # type: ignore[attr-defined]
+        return not self.training  # type: ignore[attr-defined]
 
     def apply_memory_format(self) -> None:
         """Convert parameters and buffers to the format the policy wants in the current mode (if it changed)."""

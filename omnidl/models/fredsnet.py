@@ -178,8 +178,8 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
             active on most pixels (a dead ReLU output never learns); the public code uses the default init.
         channels_last: run the network in ``torch.channels_last`` memory format (weights and activations;
             outputs are returned contiguous): ``True``, ``False`` or ``"auto"`` (default: channels-last in eval
-            mode, and in training only with ProjectedConv2d layers; dense convolutions train faster in NCHW on
-            CPU, see :mod:`omnidl.models._memory_format`). Results are the same up to float rounding.
+            mode, NCHW in training, where convolutions train faster on CPU, see
+            :mod:`omnidl.models._memory_format`). Results are the same up to float rounding.
     """
 
     stride = 32

@@ -103,10 +103,9 @@ class HoLiNet(MemoryFormatPolicy, nn.Module):
             deprecated aliases (:mod:`omnidl.nn.conv_switch`).
         camera: camera of the input image for ``conv="projected"`` (``Camera`` or config; default full equirect).
         channels_last: run in ``torch.channels_last`` memory format (weights and activations; outputs are
-            returned contiguous): ``True``, ``False`` or ``"auto"`` (default: channels-last in eval mode, and in
-            training only with ProjectedConv2d layers, whose fast backend then writes its outputs in place;
-            dense convolutions train faster in NCHW, :mod:`omnidl.models._memory_format`). Results equal up
-            to float rounding.
+            returned contiguous): ``True``, ``False`` or ``"auto"`` (default: channels-last in eval mode, NCHW
+            in training, where convolutions train as fast or faster, :mod:`omnidl.models._memory_format`).
+            Results equal up to float rounding.
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, width: float = 1.0,
