@@ -4,8 +4,18 @@ from __future__ import annotations
 import os
 
 import pytest
+import torch
 
 from omnidl.nn import native
+
+#: float32 tolerance of the native paths against their references, relative to the reference's largest value
+TOL = 1e-5
+
+
+def close_to_scale(a: torch.Tensor, b: torch.Tensor, name: str, tol: float = TOL) -> None:
+    """``a`` equals ``b`` (same shape) within ``tol`` of ``max(1, max |b|)``."""
+    assert a.shape == b.shape, name
+    assert (a - b).abs().max() <= tol * max(1.0, float(b.detach().abs().max())), name
 
 
 def _build_for(monkeypatch, tmp_path, march: str):

@@ -16,15 +16,10 @@ from omnidl.nn.projected_conv import get_plan
 from omnidl.nn.sampling import _FixedOffsetConv
 from omnidl.nn.tiled import _TiledConv
 
-TOL = 1e-5
+from .conftest import close_to_scale
 
 pytestmark = pytest.mark.skipif(native.library() is None, reason="the native kernel cannot be built here: "
                                 f"{native.status()['reason']}")
-
-
-def _close(a: torch.Tensor, b: torch.Tensor, name: str) -> None:
-    assert a.shape == b.shape, name
-    assert (a - b).abs().max() <= TOL * max(1.0, float(b.detach().abs().max())), name
 
 
 def _camera(name: str):
@@ -60,8 +55,8 @@ def test_fused_equals_columns_and_deform_conv2d(camera, k, s, d, channels_last):
     outs = [_outputs(m, x) for m in (fused, cols, ref)]
     assert type(fused(x).grad_fn).__name__.startswith(_FusedConv.__name__)
     for name, a, b, c in zip(("output", "input grad", "weight grad", "bias grad"), *outs):
-        _close(a, b, name + " vs columns")
-        _close(a, c, name + " vs deform_conv2d")
+        close_to_scale(a, b, name + " vs columns")
+        close_to_scale(a, c, name + " vs deform_conv2d")
     # same memory format as the column path: channels-last in, channels-last out
     assert outs[0][0].is_contiguous(memory_format=torch.channels_last) == channels_last
     assert outs[0][1].stride() == outs[1][1].stride()
@@ -76,7 +71,7 @@ def _assert_equals_columns(cin: int, cout: int, seed: int, bias: bool = True, ba
     cols.load_state_dict(m.state_dict())
     x = torch.randn(batch, cin, 10, 20)
     for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), _outputs(m, x), _outputs(cols, x)):
-        _close(a, b, name)
+        close_to_scale(a, b, name)
 
 
 @pytest.mark.parametrize("cin,cout", [(1, 1), (7, 17), (16, 16), (33, 40), (64, 64)])
@@ -97,7 +92,7 @@ def test_only_the_needed_gradients(need):
     cols.load_state_dict(m.state_dict())
     x = torch.randn(2, 4, 8, 16)
     for a, b in zip(_outputs(m, x, need), _outputs(cols, x, need)):
-        _close(a, b, str(need))
+        close_to_scale(a, b, str(need))
 
 
 @pytest.mark.parametrize("block", [6, 12, 30, 10_000])
@@ -110,10 +105,10 @@ def test_any_block_length_gives_the_same_result(block):
     x = torch.randn(3, 4, 12, 24, requires_grad=True)
     y = fused_conv2d(x, m.weight, m.bias, plan, block=block)
     y_cols = fixed_offset_conv2d(x, m.weight, m.bias, plan)
-    _close(y, y_cols, f"block={block}")
+    close_to_scale(y, y_cols, f"block={block}")
     g = torch.randn_like(y)
     for a, b in zip(torch.autograd.grad(y, [x, m.weight], g), torch.autograd.grad(y_cols, [x, m.weight], g)):
-        _close(a, b, f"gradients, block={block}")
+        close_to_scale(a, b, f"gradients, block={block}")
 
 
 @pytest.mark.parametrize("hw,batch,block,counts", [((12, 24), 3, 12, (1, 2, 3)), ((12, 24), 3, 6, (1, 2, 3)),
@@ -141,10 +136,10 @@ def test_thread_split_equals_one_thread(hw, batch, block, counts):
     finally:
         torch.set_num_threads(threads)
     y_cols = fixed_offset_conv2d(x, m.weight, m.bias, plan)
-    _close(runs[0][0], y_cols, "one thread vs columns")
+    close_to_scale(runs[0][0], y_cols, "one thread vs columns")
     for run in runs[1:]:
         for a, b, name in zip(run, runs[0], ("output", "input grad", "weight grad", "bias grad")):
-            _close(a, b, name)
+            close_to_scale(a, b, name)
 
 
 def test_block_positions_are_whole_kernel_tiles_near_the_target():
@@ -302,10 +297,10 @@ def test_packings_of_one_build_are_not_used_by_another(avx2_build, monkeypatch):
     x = torch.randn(1, 8, 10, 20)
     with torch.no_grad():
         ref = cols(x)
-        _close(m(x), ref, "AVX2 build")
+        close_to_scale(m(x), ref, "AVX2 build")
         monkeypatch.setattr(native, "FLAGS", native_flags)
         native.reset()
-        _close(m(x), ref, "this CPU's build")
+        close_to_scale(m(x), ref, "this CPU's build")
 
 
 def test_a_compiler_without_openmp_builds_the_single_threaded_kernel(monkeypatch, tmp_path):
@@ -392,8 +387,8 @@ def test_a_channels_last_weight_is_packed_as_it_lies(cout):
     assert not m_cl.weight.is_contiguous()
     x = torch.randn(2, 24, 12, 24)
     with torch.no_grad():
-        _close(m_cl(x), m(x), "inference")
+        close_to_scale(m_cl(x), m(x), "inference")
     outs = [_outputs(mm, x) for mm in (m_cl, m)]
     for name, a, b in zip(("output", "input grad", "weight grad", "bias grad"), *outs):
-        _close(a, b, name)
+        close_to_scale(a, b, name)
     assert outs[0][2].stride() == m_cl.weight.stride()

@@ -11,15 +11,10 @@ from omnidl.nn import ProjectedConv2d, native, plan_columns
 from omnidl.nn.fused import _FusedConv
 from omnidl.nn.projected_conv import get_plan
 
-TOL = 1e-5
+from .conftest import close_to_scale
 
 pytestmark = pytest.mark.skipif(native.library() is None, reason="the native kernel cannot be built here: "
                                 f"{native.status()['reason']}")
-
-
-def _close(a: torch.Tensor, b: torch.Tensor, name: str) -> None:
-    assert a.shape == b.shape, name
-    assert (a - b).abs().max() <= TOL * max(1.0, float(b.detach().abs().max())), name
 
 
 def _run(m: ProjectedConv2d, x: torch.Tensor):
@@ -73,8 +68,8 @@ def test_columns_equal_deform_conv2d_and_the_fused_kernel(case, weight_cl, input
     assert any(n.startswith(_FusedConv.__name__) for n in nodes)
     want, _ = _run(ref, x)
     for label, a, b, c in zip(("output", "input grad", "weight grad", "bias grad"), cols, fused, want):
-        _close(a, c, label + " vs deform_conv2d")
-        _close(a, b, label + " vs fused")
+        close_to_scale(a, c, label + " vs deform_conv2d")
+        close_to_scale(a, b, label + " vs fused")
     assert cols[0].is_contiguous(memory_format=torch.channels_last) == input_cl
     assert cols[1].stride() == x.stride()
     assert cols[2].stride() == m.weight.stride() == fused[2].stride()  # the weight's own layout, on both paths
@@ -96,7 +91,7 @@ def test_several_threads_equal_one():
     for (outs, nodes) in runs:
         assert "_ColumnsBackward" in nodes
         for label, a, b in zip(("output", "input grad", "weight grad", "bias grad"), outs, runs[0][0]):
-            _close(a, b, label)
+            close_to_scale(a, b, label)
 
 
 @pytest.mark.parametrize("what,expected", [
@@ -122,3 +117,22 @@ def test_the_rule(what, expected, monkeypatch):
     on_columns = y.grad_fn is not None and type(y.grad_fn).__name__ != _FusedConv.__name__ + "Backward"
     if y.grad_fn is not None:
         assert on_columns is expected
+
+
+@pytest.mark.parametrize("build,kernel", [("avx2_build", "avx2"), ("generic_x86_build", "blas")])
+def test_the_other_builds(build, kernel, request):
+    """The AVX2 build's and the plain x86-64 build's gather and scatter (scalar loops; the latter's products are
+    PyTorch's) give the same results."""
+    request.getfixturevalue(build)
+    assert native.status()["kernel"] == kernel
+    torch.manual_seed(4)
+    cam = Equirectangular(width=16, height=8)
+    m = ProjectedConv2d(21, 80, 3, padding=1, camera=cam).to(memory_format=torch.channels_last)
+    ref = ProjectedConv2d(21, 80, 3, padding=1, camera=cam, backend="torchvision")
+    ref.load_state_dict(m.state_dict())
+    x = torch.randn(1, 21, 4, 8)
+    got, nodes = _run(m, x)
+    want, _ = _run(ref, x)
+    assert "_ColumnsBackward" in nodes
+    for label, a, b in zip(("output", "input grad", "weight grad", "bias grad"), got, want):
+        close_to_scale(a, b, label)
