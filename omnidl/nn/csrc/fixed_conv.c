@@ -390,10 +390,12 @@ int64_t omnidl_fc_packed_floats(int k, int n) {
 }
 
 /* The layer's weight (cout, C, K), i.e. Wm[t * C + c][co] = wt[(co * C + c) * K + t] (contiguous) or
- * wt[(co * K + t) * C + c] (`cl`: a channels-last weight, (cout, K, C) in memory), packed for the kernel: transpose = 0, Wm (K*C, cout) in NR-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels
- * of NR of its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Weight rows are
+ * wt[(co * K + t) * C + c] (`cl`: a channels-last weight, (cout, K, C) in memory), packed for the kernel:
+ * transpose = 0, Wm (K*C, cout) in NR-column panels (forward); transpose = 1, Wm^T (cout, K*C) in panels of NR of
+ * its K*C columns (input gradient). `wp` holds omnidl_fc_packed_floats of that shape. Contiguous weight rows are
  * re-ordered (c, t) -> (t, c) in a per-thread buffer (NR rows for a forward panel, one row for the transposed
- * packing), so that every cache line of `wp` is written whole, once; `nthreads` OpenMP threads share the
+ * packing; a channels-last weight's rows are already in that order), so that every cache line of `wp` is written
+ * whole, once; `nthreads` OpenMP threads share the
  * panels (forward) or rows (transposed). Returns 0, or 1 when a buffer cannot be allocated. No-op on the BLAS
  * path. */
 int omnidl_fc_pack(const float *wt, int cout, int C, int K, int cl, int transpose, float *wp, int nthreads) {
