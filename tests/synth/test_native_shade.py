@@ -1,7 +1,8 @@
 """The renderer's native surface pass (``native_shade``) against its tensor-op path (``render._surfaces``).
 
-Labels, validity, depth and layout keys must be equal; the image and the camera-frame normal to 1e-5 (on an MKL
-build they are bit-identical: the native pass sums the three matrix products as sgemm does). Scenes are varied so
+Labels, validity, depth and layout keys must be equal; the camera-frame normal to 1e-5, the image to 1e-5 but for
+a few pixels (see ``_assert_image_close``; on an MKL build on Intel CPUs they are bit-identical: the native pass
+sums the three matrix products as sgemm does there). Scenes are varied so
 that every texture kind, emissive materials, wall openings, boxes and pixels without a hit are exercised.
 """
 import dataclasses
@@ -46,10 +47,24 @@ def _assert_same(a, b, what):
         if k == "meta":
             continue
         assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, (what, k)
-        if k in ("image", "normal"):
+        if k == "image":
+            _assert_image_close(a[k], b[k], f"{what} {k}")
+        elif k == "normal":
             torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-5, msg=f"{what} {k}")
         else:
             assert torch.equal(a[k], b[k]), (what, k)
+
+
+def _assert_image_close(a, b, what):
+    """Images ``(3, H, W)`` equal to 1e-5 but for at most 0.1 % of the pixels (at least one), off by at most 1e-3:
+    where the shading is steep in the surface coordinates, the last bits of those coordinates (the products with
+    ``R^T`` and the lights, summed in the BLAS's order, which differs between CPUs: MKL on an AMD EPYC host moved
+    one pixel of seed 10's rooms by 1.1e-4) move the colour by more than float32 rounding. A wrong texture cell,
+    surface or light would move far more pixels, or by more."""
+    d = (a - b).abs().amax(0)
+    off = d > 1e-5 * (1 + b.abs().amax(0))
+    assert int(off.sum()) <= max(1, off.numel() // 1000) and float(d.max()) <= 1e-3, \
+        f"{what}: {int(off.sum())} of {off.numel()} pixels off by up to {float(d.max()):.3g}"
 
 
 def _with_texture(scene, kind, scale=None):
