@@ -136,3 +136,19 @@ def test_the_other_builds(build, kernel, request):
     assert "_ColumnsBackward" in nodes
     for label, a, b in zip(("output", "input grad", "weight grad", "bias grad"), got, want):
         close_to_scale(a, b, label)
+
+
+def test_an_input_without_gradient(monkeypatch):
+    """A first layer (the input needs no gradient): the columns path gives the weight's and bias's gradients and
+    never scatters."""
+    torch.manual_seed(2)
+    m = ProjectedConv2d(6, 64, 3, padding=1, camera=Equirectangular(width=16, height=8))
+    x = torch.randn(1, 6, 4, 8)
+    y = m(x)
+    assert type(y.grad_fn).__name__ != _FusedConv.__name__ + "Backward"
+    g = torch.randn_like(y)
+    got = torch.autograd.grad(y, [m.weight, m.bias], g)
+    monkeypatch.setattr(plan_columns, "ENABLED", False)
+    want = torch.autograd.grad(m(x), [m.weight, m.bias], g)
+    for label, a, b in zip(("weight grad", "bias grad"), got, want):
+        close_to_scale(a, b, label)
