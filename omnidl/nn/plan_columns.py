@@ -4,8 +4,8 @@ A layer whose weight dwarfs its input (FreDSNet's 1024 -> 1024 channel 3x3 Fouri
 map: 37.7 MB of weight against 4.7 MB of taps) spends its training step moving the weight, not multiplying. The
 fused kernel (:mod:`.fused`) packs the weight into panels twice per step (``Wm``, then ``Wm^T``), accumulates the
 weight gradient in fresh ``(kh*kw*C, Cout)`` zeros and then lays it out as the weight: passes over freshly mapped
-weight-sized memory, which page faults make slow. Here the taps of every position are gathered once into rows ``A (B, P, kh*kw*C)``
-(:func:`omnidl_fc_gather`, the fused kernel's gather) and the rest is the standard path's product
+weight-sized memory, which page faults make slow. Here the taps of every position are gathered once into rows
+``A (B, P, kh*kw*C)`` (:func:`omnidl_fc_gather`, the fused kernel's gather) and the rest is the standard path's product
 (:class:`omnidl.nn.unfold_conv._Product`): the weight read where it lies, the weight gradient written into kept
 memory in the weight's own layout; the backward scatters the columns' gradient back onto the input
 (:func:`omnidl_fc_scatter`, threads split by channels). Measured for 1024 -> 1024 channels, 3x3 on 8x16,

@@ -301,11 +301,11 @@ def _weight_layout(gwm: Tensor, kh: int, kw: int, C: int, channels_last: bool) -
     (autograd's own copy runs as fast as two native passes would)."""
     Cout = gwm.shape[1]
     gw = gwm.view(kh, kw, C, Cout).permute(3, 2, 0, 1)
-    if channels_last:
-        out = torch.empty(gw.shape, dtype=gw.dtype, memory_format=torch.channels_last)
-        if thin_layout.nhwc_into_nchw(gwm.view(1, kh * kw, C, Cout), out.permute(0, 2, 3, 1).view(1, Cout, kh * kw, C)):
-            return out
-    return gw
+    if not (channels_last and thin_layout.native_pass(gwm)):
+        return gw
+    out = torch.empty(gw.shape, dtype=gw.dtype, memory_format=torch.channels_last)
+    thin_layout.nhwc_into_nchw(gwm.view(1, kh * kw, C, Cout), out.permute(0, 2, 3, 1).view(1, Cout, kh * kw, C))
+    return out
 
 
 class _FixedOffsetConv(torch.autograd.Function):

@@ -46,8 +46,7 @@ def pays(x: Tensor, weight: Tensor) -> bool:
     memory: autograd recording, fewer than :data:`BLOCK` output channels, at least :data:`MIN_NUMEL` elements of a
     contiguous float32 CPU map, the native library built, not captured by ``torch.compile``/export."""
     return (ENABLED and torch.is_grad_enabled() and x.dim() == 4 and weight.dim() == 4 and weight.shape[0] < BLOCK
-            and x.numel() >= MIN_NUMEL and x.device.type == "cpu" and x.dtype == torch.float32
-            and x.is_contiguous() and not capturing() and native.library() is not None)
+            and x.numel() >= MIN_NUMEL and x.is_contiguous() and native_pass(x))
 
 
 def to_channels_last(x: Tensor, left: int = 0, right: int = 0) -> Tensor:
@@ -85,20 +84,25 @@ def to_nchw(t: Tensor) -> Tensor:
     as fast as the native pass. ``t`` itself when already contiguous."""
     if t.is_contiguous():
         return t
-    if t.dim() == 4 and t.is_contiguous(memory_format=torch.channels_last) and not (torch.is_grad_enabled()
-                                                                                    and t.requires_grad):
+    if (t.dim() == 4 and t.is_contiguous(memory_format=torch.channels_last) and native_pass(t)
+            and not (torch.is_grad_enabled() and t.requires_grad)):
         out = torch.empty(t.shape, dtype=t.dtype)
-        if nhwc_into_nchw(t.permute(0, 2, 3, 1), out):
-            return out
+        nhwc_into_nchw(t.permute(0, 2, 3, 1), out)
+        return out
     return t.contiguous()
+
+
+def native_pass(*ts: Tensor) -> bool:
+    """Whether the native layout pass can read and write these tensors: float32 CPU memory, the native library
+    built, not captured by ``torch.compile``/export."""
+    return (all(t.dtype == torch.float32 and t.device.type == "cpu" for t in ts) and not capturing()
+            and native.library() is not None)
 
 
 def nhwc_into_nchw(src: Tensor, out: Tensor) -> bool:
     """Writes ``src (B, H, W, C)`` into ``out (B, C, H, W)`` (both contiguous) in one native pass and returns
-    ``True``; ``False``, nothing written, where that pass does not run (not float32 CPU memory, no native library,
-    captured by ``torch.compile``/export)."""
-    if not (src.dtype == out.dtype == torch.float32 and src.device.type == out.device.type == "cpu"
-            and src.is_contiguous() and out.is_contiguous() and not capturing() and native.library() is not None):
+    ``True``; ``False``, nothing written, where that pass does not run (see :func:`native_pass`)."""
+    if not (native_pass(src, out) and src.is_contiguous() and out.is_contiguous()):
         return False
     B, H, W, C = src.shape
     if tuple(out.shape) != (B, C, H, W):

@@ -43,7 +43,11 @@ CASES = [("equirect", (4, 8), 20, 64, 3, 1, 1, 1),
          ("kannala_brandt", (5, 5), 7, 52, 3, 1, 1, 1)]
 
 
-@pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c[0]}-{c[1][0]}x{c[1][1]}-{c[2]}to{c[3]}-k{c[4]}s{c[5]}d{c[6]}-B{c[7]}")
+def _case_id(c) -> str:
+    return f"{c[0]}-{c[1][0]}x{c[1][1]}-{c[2]}to{c[3]}-k{c[4]}s{c[5]}d{c[6]}-B{c[7]}"
+
+
+@pytest.mark.parametrize("case", CASES, ids=_case_id)
 @pytest.mark.parametrize("weight_cl", [False, True], ids=["weight-nchw", "weight-cl"])
 @pytest.mark.parametrize("input_cl", [False, True], ids=["input-nchw", "input-cl"])
 def test_columns_equal_deform_conv2d_and_the_fused_kernel(case, weight_cl, input_cl, monkeypatch):
