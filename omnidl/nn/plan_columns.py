@@ -21,8 +21,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from . import native, thin_layout
-from .sampling import SamplingPlan, _is_channels_last, _rows, weight_channels_last
+from . import native
+from .fused import _call
+from .sampling import SamplingPlan, _is_channels_last, _rows, rows_as_map, weight_channels_last
 from .unfold_conv import _Product
 
 #: ``False``: weight-heavy layers take the fused kernel in training too (benchmarks' in-process A/B)
@@ -84,10 +85,4 @@ class _Columns(torch.autograd.Function):
         _call(native.library().omnidl_fc_scatter(gx.data_ptr(), H * W * C, C, plan.idx.data_ptr(),
                                                  plan.weight.data_ptr(), plan.taps, plan.out_hw[0] * plan.out_hw[1],
                                                  B, gA.data_ptr(), torch.get_num_threads()), "scatter")
-        gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
-        return (gx if ctx.channels_last else thin_layout.to_nchw(gx)), None
-
-
-def _call(rc: int, what: str) -> None:
-    if rc != 0:
-        raise RuntimeError(f"weight-heavy fixed-offset convolution ({what}): the native kernel returned {rc}")
+        return rows_as_map(gx, ctx.in_shape, ctx.channels_last), None

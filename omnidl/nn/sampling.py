@@ -273,7 +273,7 @@ def finish_backward(ctx, grad_out: Tensor, parts: list[tuple[Tensor | None, Tens
     """The gradients a fixed-offset convolution's ``backward`` returns, from the workers' private
     accumulators ``parts``: ``[(grad of the input rows (B, H*W, C) or None, grad of the weight as
     (kh*kw*C, Cout) or None), ...]`` (summed here), in the input's memory format, plus the bias gradient."""
-    B, C, H, W = ctx.in_shape
+    C = ctx.in_shape[1]
     kh, kw = ctx.plan.kernel_size
     gx, gwm = parts[0]
     for px, pw in parts[1:]:
@@ -283,14 +283,20 @@ def finish_backward(ctx, grad_out: Tensor, parts: list[tuple[Tensor | None, Tens
             gwm += pw
     gw = gb = None
     if gx is not None:
-        gx = gx.view(B, H, W, C).permute(0, 3, 1, 2)
-        if not ctx.channels_last:
-            gx = thin_layout.to_nchw(gx)
+        gx = rows_as_map(gx, ctx.in_shape, ctx.channels_last)
     if gwm is not None:
         gw = _weight_layout(gwm, kh, kw, C, ctx.weight_channels_last)
     if ctx.needs_input_grad[2] and ctx.has_bias:
         gb = grad_out.sum((0, 2, 3))
     return gx, gw, gb, None, None
+
+
+def rows_as_map(rows: Tensor, shape: tuple[int, int, int, int], channels_last: bool) -> Tensor:
+    """Input-gradient rows ``(B, H*W, C)`` as the map ``shape = (B, C, H, W)``: a channels-last view, or (not
+    ``channels_last``) contiguous memory by :func:`omnidl.nn.thin_layout.to_nchw`."""
+    B, C, H, W = shape
+    gx = rows.view(B, H, W, C).permute(0, 3, 1, 2)
+    return gx if channels_last else thin_layout.to_nchw(gx)
 
 
 def _weight_layout(gwm: Tensor, kh: int, kw: int, C: int, channels_last: bool) -> Tensor:

@@ -499,17 +499,16 @@ int omnidl_fc_gather(const float *x, int64_t x_img, int C, const int32_t *idx, c
 }
 
 /* The adjoint of omnidl_fc_gather: gx (B images of gx_img floats, zeroed or accumulated into) += S^T A, on
- * `nthreads` OpenMP threads, each over every position for its share of the channels (in steps of 16: no two
- * threads write one float, nor one cache line where C is a multiple of 16). Returns 0. */
+ * `nthreads` OpenMP threads, each over every position for its share of the channels (channel_share's panels of
+ * 16 or 32: no two threads write one float, nor one cache line where C is a multiple of 16). Returns 0. */
 int omnidl_fc_scatter(float *gx, int64_t gx_img, int C, const int32_t *idx, const float *w, int K, int64_t P, int B,
                       const float *A, int nthreads) {
     (void)nthreads;
 #pragma omp parallel num_threads(nthreads)
     {
-        int t, nt;
+        int t, nt, c0, c1;
         team(&t, &nt);
-        const int steps = (C + 15) / 16;
-        const int c0 = 16 * (steps * t / nt), c1 = (int)min64(C, 16 * (steps * (t + 1) / nt));
+        channel_share(C, t, nt, &c0, &c1);
         for (int b = 0; c1 > c0 && b < B; ++b)
             scatter_span(gx + b * gx_img, C, c0, c1, idx, w, 0, P * K, A + (int64_t)b * P * K * C);
     }
