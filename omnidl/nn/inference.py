@@ -12,7 +12,9 @@ eval mode without autograd, on CPU float32 (:func:`inference_ready`):
   and the ReLU are one more in-place pass: oneDNN's fused sum ran slower);
 * a dense 1x1 convolution over a residual the caller no longer needs (``into_residual``) runs on omnidl's native
   kernel instead, written over the residual with the sum and the ReLU applied per block in the cache: no new
-  output buffer (at 1024x512 a ResNet's layer-1 outputs are 33 MB, which glibc maps and page-faults afresh).
+  output buffer (at 1024x512 a ResNet's layer-1 outputs are 33 MB, which glibc maps and page-faults afresh);
+* 3x3 layers of stride 1 run Winograd F(2x2, 3x3) (:mod:`omnidl.nn.winograd`), those of stride ``(2, 1)`` (HorizonNet's
+  height towers) the row Winograd F(2, 3) (:mod:`omnidl.nn.winograd_rows`) on the native kernel, where they pay.
 
 ``F.conv2d`` hands oneDNN the weight in PyTorch's layout, and oneDNN re-lays it out on every call; on the
 weight-heavy layers of a ResNet at panorama sizes that costs more than the arithmetic (2 threads: a 75 MB
@@ -38,7 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import fused, native, winograd
+from . import fused, native, winograd, winograd_rows
 from .capture import capturing
 from .padding import CircularConv2d, border_strip_conv, pad_panorama
 from .projected_conv import ProjectedConv2d
@@ -73,6 +75,7 @@ class _Entry:
         self.packed: dict[tuple, Tensor] = {}
         self.dense: tuple[int, tuple[Tensor | None, Tensor | None]] | None = None   # (kernel kind, packing)
         self.wino: tuple[int, Tensor | None] | None = None
+        self.wino_rows: tuple[int, Tensor | None] | None = None
 
     def folded_weight(self, keep: bool) -> Tensor:
         """The folded weight ``(Cout, Cin/groups, kh, kw)``, contiguous; kept with ``keep``."""
@@ -291,6 +294,19 @@ def _winograd(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, residu
                             act == "relu")
 
 
+def _winograd_rows(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation) -> Tensor | None:
+    """``act(conv(x))`` for a 3x3 layer of stride ``(2, 1)`` by the row Winograd F(2, 3) on the native kernel
+    (:mod:`omnidl.nn.winograd_rows`); ``None`` where it does not apply."""
+    wrap = winograd_rows.row_mode(x, conv)
+    if wrap is None:
+        return None
+    lib, packed = _native_packing(entry, "wino_rows",
+                                  lambda lib: winograd_rows.pack(lib, entry.folded_weight(keep=False)))
+    if lib is None or packed is None:                     # no native library, or the BLAS build
+        return None
+    return winograd_rows.forward(lib, x, wrap, packed, conv.out_channels, entry.bias, act == "relu")
+
+
 def conv_bn_act(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None = None, act: Activation = None,
                 residual: Tensor | None = None, into_residual: bool = False, ready: bool = False) -> Tensor:
     """``act(bn(conv(x)) + residual)``: ``x (B, Cin, H, W)``, ``residual`` ``None`` or ``(B, Cout, Ho, Wo)`` ->
@@ -345,6 +361,8 @@ def _fast(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None, act: Activation, res
     if into_residual and residual is not None and (y := _dense_into(x, conv, entry, act, residual)) is not None:
         return y
     if (residual is None or into_residual) and (y := _winograd(x, conv, entry, act, residual)) is not None:
+        return y
+    if residual is None and (y := _winograd_rows(x, conv, entry, act)) is not None:
         return y
     if _packable(conv) and x.is_contiguous(memory_format=torch.channels_last):
         if isinstance(conv, CircularConv2d):

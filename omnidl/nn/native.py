@@ -161,6 +161,12 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_wino_pack.restype = i
     lib.omnidl_wino_forward.argtypes = [p, i, i, i, i, i, p, i, p, p, i, i, i, i]
     lib.omnidl_wino_forward.restype = i
+    lib.omnidl_wino_rows_packed_floats.argtypes = [i, i]
+    lib.omnidl_wino_rows_packed_floats.restype = n
+    lib.omnidl_wino_rows_pack.argtypes = [p, i, i, p, i]
+    lib.omnidl_wino_rows_pack.restype = i
+    lib.omnidl_wino_rows_forward.argtypes = [p, i, i, i, i, i, i, p, i, p, p, i, i, i]
+    lib.omnidl_wino_rows_forward.restype = i
     lib.omnidl_wino_pack_flip.argtypes = [p, i, i, i, p, i]
     lib.omnidl_wino_pack_flip.restype = i
     lib.omnidl_wino_weight_grad.argtypes = [p, p, i, i, i, i, i, i, p, i, p, i]

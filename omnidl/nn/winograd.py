@@ -43,6 +43,12 @@ def wrap_mode(x: Tensor, conv: nn.Module) -> int | None:
             and x.is_contiguous(memory_format=torch.channels_last) and x.shape[-1] >= 2
             and tiles(x) >= max(conv.in_channels, conv.out_channels) // 4 + 16):
         return None
+    return padding_mode(conv)
+
+
+def padding_mode(conv: nn.Module) -> int | None:
+    """``1`` for a :class:`~omnidl.nn.padding.CircularConv2d` with wrap padding 1, ``0`` for an ``nn.Conv2d``
+    with zero padding 1, else ``None`` (the paddings the native Winograd kernels take)."""
     from .padding import CircularConv2d   # here: padding imports unfold_conv, which imports winograd_train and this
     if type(conv) is CircularConv2d:
         return 1 if tuple(conv.wrap_padding) == (1, 1) else None

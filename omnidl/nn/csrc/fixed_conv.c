@@ -1059,6 +1059,177 @@ int omnidl_wino_forward(const float *x, int B, int H, int W, int C, int wrap, co
 #endif
 }
 
+/* ---- Row Winograd F(2, 3): a 3x3 convolution of vertical stride sy (1 or 2) with 1.5x fewer multiplications ------
+ *
+ * HorizonNet's height towers halve the height with 3x3 convolutions of stride (2, 1), which F(2x2, 3x3) cannot take.
+ * Along each row the stride is 1, so the 1-d transform applies there: a tile is 2 horizontally adjacent outputs of
+ * one output row; for each of its 3 input rows (sy * oy - 1 + ky) the 4 input columns d give v = b^T d and the
+ * filter's row g_ky gives u = G g_ky; the tile's outputs are y = a^T [sum over ky and channels of u (.) v]. Per
+ * tile the 3 rows' transformed inputs lie side by side (3C values), so the 4 sums are 4 matrix products
+ * M[xi] (tiles, cout) = V[xi] (tiles, 3C) @ U[xi] (3C, cout) on the register kernel: 4 x 3 multiplications per
+ * 2 outputs and (channel, output channel) against 9 x 2 for the direct sum.
+ *     b^T = [1 0 -1 0; 0 1 1 0; 0 -1 1 0; 0 1 0 -1]   G = [1 0 0; .5 .5 .5; .5 -.5 .5; 0 0 1]   a^T = [1 1 1 0; 0 1 -1 -1]
+ * Padding: one row of zeros above (and below where the rows reach it); one column each side of zeros, or the
+ * wrapped column (wrap = 1). Output (Ho, W) with Ho = (H - 1) / sy + 1, as the padded 3x3 convolution's.
+ */
+
+/* floats of omnidl_wino_rows_pack's output for C input and cout output channels (0 on the BLAS build) */
+int64_t omnidl_wino_rows_packed_floats(int C, int cout) {
+#if HAVE_KERNEL
+    return 4 * packed_floats(3 * C, cout);
+#else
+    (void)C; (void)cout;
+    return 0;
+#endif
+}
+
+/* w (cout, C, 3, 3) contiguous -> the 4 packed panel sets of U[xi] (3C, cout): row ky * C + c of U[xi] holds
+ * (G w[co][c][ky][.])[xi] for every output channel co. Threads take whole panels. Returns 0, 2 on the BLAS build. */
+int omnidl_wino_rows_pack(const float *w, int cout, int C, float *up, int nthreads) {
+#if HAVE_KERNEL
+    const int rows = 3 * C, panels = (cout + NR - 1) / NR;
+    const int64_t stride = packed_floats(rows, cout);
+    (void)nthreads;
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+    for (int q = 0; q < panels; ++q) {
+        const int nr = cout - q * NR < NR ? cout - q * NR : NR;
+        for (int r = 0; r < rows; ++r) {
+            const int ky = r / C, c = r % C;
+            float u[4][NR];
+            for (int j = 0; j < NR; ++j) {
+                if (j >= nr) {
+                    u[0][j] = u[1][j] = u[2][j] = u[3][j] = 0.0f;
+                    continue;
+                }
+                const float *g = w + (((int64_t)(q * NR + j) * C + c) * 3 + ky) * 3;
+                u[0][j] = g[0];
+                u[1][j] = 0.5f * (g[0] + g[1] + g[2]);
+                u[2][j] = 0.5f * (g[0] - g[1] + g[2]);
+                u[3][j] = g[2];
+            }
+            float *d = up + (int64_t)q * rows * NR + (int64_t)r * NR;
+            for (int xi = 0; xi < 4; ++xi) memcpy(d + xi * stride, u[xi], sizeof(u[xi]));
+        }
+    }
+    return 0;
+#else
+    (void)w; (void)cout; (void)C; (void)up; (void)nthreads;
+    return 2;
+#endif
+}
+
+#if HAVE_KERNEL
+/* V[xi][i][ky * C + c] (at V[xi * plane + i * ldv + ky * C + c]) of the tiles t0..t0+m-1 (tw tiles per output
+ * row) of image rows x (H, W, C); zero: C zeros */
+static void wino_rows_input(const float *x, int H, int W, int C, int sy, int wrap, const float *zero, int64_t t0,
+                            int m, int tw, float *V, int64_t ldv, int64_t plane) {
+    for (int i = 0; i < m; ++i) {
+        const int64_t t = t0 + i;
+        const int oy = (int)(t / tw), tx = (int)(t % tw);
+        for (int ky = 0; ky < 3; ++ky) {
+            const int r = sy * oy - 1 + ky;
+            const float *p[4];
+            for (int b = 0; b < 4; ++b) {
+                int col = 2 * tx - 1 + b;
+                if (wrap) col = (col + W) % W;
+                p[b] = (r < 0 || r >= H || col < 0 || col >= W) ? zero : x + ((int64_t)r * W + col) * C;
+            }
+            const float *restrict p0 = p[0], *restrict p1 = p[1], *restrict p2 = p[2], *restrict p3 = p[3];
+            float *v = V + (int64_t)i * ldv + (int64_t)ky * C;
+            float *restrict v0 = v, *restrict v1 = v + plane, *restrict v2 = v + 2 * plane, *restrict v3 = v + 3 * plane;
+#pragma omp simd
+            for (int c = 0; c < C; ++c) {
+                v0[c] = p0[c] - p2[c];
+                v1[c] = p1[c] + p2[c];
+                v2[c] = p2[c] - p1[c];
+                v3[c] = p1[c] - p3[c];
+            }
+        }
+    }
+}
+
+/* out (Ho, W, cout) pixels of tiles t0..: y = a^T M (+ bias) (ReLU), output channels [c0, c1) (M's rows ldm apart) */
+static void wino_rows_output(const float *M, int64_t plane, int64_t ldm, int m, int c0, int c1, int cout,
+                             const float *bias, float *out, int W, int64_t t0, int tw, int relu) {
+    for (int i = 0; i < m; ++i) {
+        const int64_t t = t0 + i;
+        const int oy = (int)(t / tw), tx = (int)(t % tw);
+        float *o0 = out + ((int64_t)oy * W + 2 * tx) * cout;
+        float *o1 = 2 * tx + 1 < W ? o0 + cout : NULL;
+        const float *restrict q0 = M + i * ldm, *restrict q1 = q0 + plane, *restrict q2 = q0 + 2 * plane;
+        const float *restrict q3 = q0 + 3 * plane;
+#pragma omp simd
+        for (int co = c0; co < c1; ++co) {
+            const float bb = bias ? bias[co] : 0.0f;
+            float y0 = q0[co] + q1[co] + q2[co] + bb;
+            if (relu && y0 < 0.0f) y0 = 0.0f;   /* NaN stays NaN */
+            o0[co] = y0;
+        }
+        if (o1) {
+#pragma omp simd
+            for (int co = c0; co < c1; ++co) {
+                const float bb = bias ? bias[co] : 0.0f;
+                float y1 = q1[co] - q2[co] - q3[co] + bb;
+                if (relu && y1 < 0.0f) y1 = 0.0f;
+                o1[co] = y1;
+            }
+        }
+    }
+}
+#endif
+
+/* 3x3 convolution of vertical stride sy, horizontal stride 1, padding 1 (zero, or wrapped columns when wrap) of B
+ * images x (B, H, W, C) channels-last into out (B, Ho, W, cout) by the row Winograd F(2, 3), with `up` from
+ * omnidl_wino_rows_pack; bias may be NULL; relu. Tiles are split among `nthreads` OpenMP threads in blocks of
+ * `block` tiles, or, with too few tiles for that, the output channels' panels are (each thread then streams its
+ * part of the weight). Returns 0, 1 when out of memory, 2 on the BLAS build. */
+int omnidl_wino_rows_forward(const float *x, int B, int H, int W, int C, int sy, int wrap, const float *up, int cout,
+                             const float *bias, float *out, int relu, int block, int nthreads) {
+#if HAVE_KERNEL
+    const int Ho = (H - 1) / sy + 1, tw = (W + 1) / 2;
+    const int64_t T = (int64_t)Ho * tw, total = (int64_t)B * T, stride = packed_floats(3 * C, cout);
+    const int by_channels = split_channels(total, block, nthreads, cout);
+    /* split by channels, every thread runs every tile: in one block (under 2 * block * nthreads of them), so that
+     * each thread streams its share of the transformed weight once */
+    if (by_channels) block = (int)total;
+    int err = 0;
+#pragma omp parallel num_threads(nthreads) reduction(| : err)
+    {
+        int64_t s0, s1;
+        int c0, c1;
+        forward_share(total, by_channels, cout, &s0, &s1, &c0, &c1);
+        /* a row of V a cache line longer than its 3C values: rows a multiple of 4 kB apart (3C = 1024 k) would all
+         * fall into one L1 set, and the kernel reads 12 of them at once */
+        const int64_t ldv = 3 * (int64_t)C + 16, vplane = wino_plane(block, ldv), mplane = wino_plane(block, cout);
+        float *V = (float *)malloc(sizeof(float) * 4 * (size_t)(vplane + mplane));
+        float *zero = (float *)calloc((size_t)C, sizeof(float));
+        if (!V || !zero) {
+            err = 1;
+        } else if (c1 > c0) {
+            float *M = V + 4 * vplane;
+            for (int64_t s = s0; s < s1;) {
+                const int64_t b = s / T, t0 = s % T;
+                const int m = (int)min64(block, min64(s1 - s, T - t0));
+                wino_rows_input(x + b * (int64_t)H * W * C, H, W, C, sy, wrap, zero, t0, m, tw, V, ldv, vplane);
+                for (int xi = 0; xi < 4; ++xi)
+                    gemm_packed(m, c1 - c0, 3 * C, V + xi * vplane, ldv, 1, up + xi * stride + (int64_t)c0 * 3 * C,
+                                M + xi * mplane + c0, cout, 0, NULL);
+                wino_rows_output(M, mplane, cout, m, c0, c1, cout, bias, out + b * (int64_t)Ho * W * cout, W, t0, tw,
+                                 relu);
+                s += m;
+            }
+        }
+        free(V);
+        free(zero);
+    }
+    return err;
+#else
+    (void)x; (void)B; (void)H; (void)W; (void)C; (void)sy; (void)wrap; (void)up; (void)cout; (void)bias; (void)out;
+    (void)relu; (void)block; (void)nthreads;
+    return 2;
+#endif
+}
+
 #if HAVE_KERNEL
 /* M = A gy A^T, A = [1 0; 1 1; 1 -1; 0 -1] (the adjoint of the forward's output transform), of the tiles t0..t0+n-1
  * of image rows gy (H, W, cout), zero beyond the map, into rows i0.. of NR-column panels of mp rows: element (xi, i,
