@@ -9,7 +9,8 @@ the direct sum by a few float32 ulps of the operands' scale (well inside 1e-5 re
 
 :func:`row_mode` says whether a layer qualifies: ``nn.Conv2d`` with zero padding 1 or
 :class:`~omnidl.nn.padding.CircularConv2d` with wrap padding 1; 3x3, stride ``(2, 1)``, no dilation or groups;
-:data:`MIN_CHANNELS` or more channels each way; enough tiles in the batch for the weight (:data:`MIN_TILES`). :func:`pack`
+:data:`omnidl.nn.winograd.MIN_CHANNELS` or more channels each way; enough tiles in the batch for the weight
+(:data:`MIN_TILES`). :func:`pack`
 transforms and packs a weight once; :func:`forward` runs a layer.
 """
 from __future__ import annotations
@@ -19,8 +20,6 @@ from torch import Tensor, nn
 
 from . import fused, winograd
 
-#: the fewest input and output channels taken (the transforms' share of the work grows as channels shrink)
-MIN_CHANNELS = 32
 #: the fewest tiles (pairs of outputs) in the batch are ``MIN_TILES + C * Cout // TILES_PER_WEIGHT``: with fewer,
 #: the transformed weight (4/3 of the weight) is read for too few products. Measured on 2 threads (AVX-512 host)
 #: against oneDNN's folded convolution + ReLU: 1024 -> 1024 channels on 16 tiles 6.2 against 5.8 ms (not taken),
@@ -34,11 +33,7 @@ ENABLED = True
 def row_mode(x: Tensor, conv: nn.Module) -> int | None:
     """``1`` (horizontal wrap) or ``0`` (zero padding) where :func:`forward` computes ``conv`` on ``x``
     (channels-last float32 on the CPU), else ``None``."""
-    if not (ENABLED and fused.ENABLED and conv.kernel_size == (3, 3) and conv.stride == (2, 1)
-            and conv.dilation == (1, 1) and conv.groups == 1 and x.dim() == 4
-            and MIN_CHANNELS <= min(conv.in_channels, conv.out_channels)
-            and x.dtype == torch.float32 and x.device.type == "cpu"
-            and x.is_contiguous(memory_format=torch.channels_last) and x.shape[-1] >= 2
+    if not (ENABLED and winograd.native_3x3(x, conv, (2, 1))
             and tiles(x) >= MIN_TILES + conv.in_channels * conv.out_channels // TILES_PER_WEIGHT):
         return None
     return winograd.padding_mode(conv)
