@@ -68,16 +68,16 @@ def tiles(x: Tensor) -> int:
     return x.shape[0] * ((x.shape[-2] + 1) // 2) * ((x.shape[-1] + 1) // 2)
 
 
-def pack(lib, weight: Tensor) -> Tensor | None:
-    """The transformed, packed weight of ``weight (Cout, C, 3, 3)`` for :func:`forward` (``None`` on the BLAS
-    build, which has no register kernel)."""
+def pack(lib, weight: Tensor, kind: str = "wino") -> Tensor | None:
+    """The transformed, packed weight of ``weight (Cout, C, 3, 3)`` for :func:`forward` (``kind="wino_rows"``: for
+    :func:`omnidl.nn.winograd_rows.forward`); ``None`` on the BLAS build, which has no register kernel."""
     cout, C = weight.shape[:2]
-    n = lib.omnidl_wino_packed_floats(C, cout)
+    n = getattr(lib, f"omnidl_{kind}_packed_floats")(C, cout)
     if n == 0:
         return None
     w = weight.detach().contiguous()
     up = torch.empty(n, dtype=torch.float32)
-    rc = lib.omnidl_wino_pack(w.data_ptr(), cout, C, up.data_ptr(), torch.get_num_threads())
+    rc = getattr(lib, f"omnidl_{kind}_pack")(w.data_ptr(), cout, C, up.data_ptr(), torch.get_num_threads())
     if rc == 1:
         raise MemoryError("omnidl Winograd convolution: the native kernel could not allocate its buffers")
     return up if rc == 0 else None

@@ -52,14 +52,7 @@ def tiles(x: Tensor) -> int:
 def pack(lib, weight: Tensor) -> Tensor | None:
     """The transformed, packed weight of ``weight (Cout, C, 3, 3)`` for :func:`forward` (``None`` on the BLAS
     build, which has no register kernel)."""
-    cout, C = weight.shape[:2]
-    n = lib.omnidl_wino_rows_packed_floats(C, cout)
-    if n == 0:
-        return None
-    w = weight.detach().contiguous()
-    up = torch.empty(n, dtype=torch.float32)
-    rc = lib.omnidl_wino_rows_pack(w.data_ptr(), cout, C, up.data_ptr(), torch.get_num_threads())
-    return up if rc == 0 else None
+    return winograd.pack(lib, weight, "wino_rows")
 
 
 def block_tiles(C: int, cout: int) -> int:
