@@ -48,6 +48,7 @@ CASES = [
     ("one row", 1, 4, 8, 1, 6, 0, True, False),
     ("two rows", 1, 4, 8, 2, 6, 1, True, True),
     ("few tiles, many output channels (threads split the channels)", 1, 64, 256, 2, 4, 1, True, True),
+    ("channels split on 3 threads, many tiles (several blocks each with a 1 MB L2)", 1, 64, 256, 20, 48, 1, True, True),
     ("3C a multiple of 1024 (rows padded off one cache set)", 1, 1024, 40, 4, 6, 1, True, True),
 ]
 

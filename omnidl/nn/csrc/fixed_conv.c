@@ -1203,9 +1203,10 @@ int omnidl_wino_rows_forward(const float *x, int B, int H, int W, int C, int sy,
     const int Ho = (H - 1) / sy + 1, tw = (W + 1) / 2;
     const int64_t T = (int64_t)Ho * tw, total = (int64_t)B * T, stride = packed_floats(3 * C, cout);
     const int by_channels = split_channels(total, block, nthreads, cout);
-    /* split by channels, every thread runs every tile: in one block (under 2 * block * nthreads of them), so that
-     * each thread streams its share of the transformed weight once */
-    if (by_channels) block = (int)total;
+    /* split by channels, every thread runs every tile: in one block where there are up to 4 blocks' worth (all of
+     * them on 2 threads: fewer than 2 * block * nthreads), so that each thread streams its share of the
+     * transformed weight once; the cap bounds each thread's buffers on many-core hosts */
+    if (by_channels) block = (int)min64(total, 4 * (int64_t)block);
     int err = 0;
 #pragma omp parallel num_threads(nthreads) reduction(| : err)
     {
