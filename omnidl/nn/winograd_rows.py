@@ -22,8 +22,9 @@ from . import fused, winograd
 
 #: the fewest tiles (pairs of outputs) in the batch are ``MIN_TILES + C * Cout // TILES_PER_WEIGHT``: with fewer,
 #: the transformed weight (4/3 of the weight) is read for too few products. Measured on 2 threads (AVX-512 host)
-#: against oneDNN's folded convolution + ReLU: 1024 -> 1024 channels on 16 tiles 6.2 against 5.8 ms (not taken),
-#: 2048 -> 1024 on 32 tiles 13.0 against 15.6 ms, 512 -> 256 on 8 tiles 0.18 against 0.21 ms.
+#: against oneDNN's folded convolution + ReLU: 1024 -> 1024 channels on 16 tiles 6.2 against 5.8 ms, 2048 -> 1024
+#: on 32 tiles 0.83-1.04x over four runs (both not taken: 32 and 48 tiles needed), 2048 -> 1024 on 128 tiles
+#: 0.93-0.98x, 512 -> 256 on 8 tiles 0.87x (18 needed: left to oneDNN, a few microseconds).
 MIN_TILES = 16
 TILES_PER_WEIGHT = 65536
 #: ``False`` leaves every layer to oneDNN (benchmarks' in-process A/B)
