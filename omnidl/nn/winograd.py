@@ -79,15 +79,23 @@ def pack(lib, weight: Tensor, kind: str = "wino") -> Tensor | None:
     up = torch.empty(n, dtype=torch.float32)
     rc = getattr(lib, f"omnidl_{kind}_pack")(w.data_ptr(), cout, C, up.data_ptr(), torch.get_num_threads())
     if rc == 1:
-        raise MemoryError("omnidl Winograd convolution: the native kernel could not allocate its buffers")
+        check(rc)
     return up if rc == 0 else None
 
 
-def block_tiles(C: int, cout: int) -> int:
-    """Tiles per block: their transformed inputs and products about :data:`omnidl.nn.fused.BLOCK_BYTES`, a multiple
-    of :data:`omnidl.nn.fused.TILE_ROWS`, at least 24."""
+def block_tiles(C: int, cout: int, planes: int = 16) -> int:
+    """Tiles per block: their transformed inputs and products (``planes`` of each, C and cout floats per tile)
+    about :data:`omnidl.nn.fused.BLOCK_BYTES`, a multiple of :data:`omnidl.nn.fused.TILE_ROWS`, at least 24."""
     t = fused.TILE_ROWS
-    return max(24, fused.BLOCK_BYTES // (64 * (C + cout)) // t * t)
+    return max(24, fused.BLOCK_BYTES // (4 * planes * (C + cout)) // t * t)
+
+
+def check(rc: int, what: str = "Winograd convolution") -> None:
+    """Raises for a native Winograd kernel's return code: 1 out of memory, any other but 0 an error."""
+    if rc == 1:
+        raise MemoryError(f"omnidl {what}: the native kernel could not allocate its buffers")
+    if rc:
+        raise RuntimeError(f"omnidl {what}: the native kernel returned {rc}")
 
 
 def forward(lib, x: Tensor, wrap: int, packed: Tensor, cout: int, bias: Tensor | None, out: Tensor,
@@ -98,8 +106,5 @@ def forward(lib, x: Tensor, wrap: int, packed: Tensor, cout: int, bias: Tensor |
     rc = lib.omnidl_wino_forward(x.data_ptr(), B, H, W, C, int(wrap), packed.data_ptr(), cout,
                                  None if bias is None else bias.data_ptr(), out.data_ptr(), int(accumulate),
                                  int(relu), block_tiles(C, cout), torch.get_num_threads())
-    if rc == 1:
-        raise MemoryError("omnidl Winograd convolution: the native kernel could not allocate its buffers")
-    if rc:
-        raise RuntimeError(f"omnidl Winograd convolution: the native kernel returned {rc}")
+    check(rc)
     return out

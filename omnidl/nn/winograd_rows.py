@@ -10,15 +10,14 @@ the direct sum by a few float32 ulps of the operands' scale (well inside 1e-5 re
 :func:`row_mode` says whether a layer qualifies: ``nn.Conv2d`` with zero padding 1 or
 :class:`~omnidl.nn.padding.CircularConv2d` with wrap padding 1; 3x3, stride ``(2, 1)``, no dilation or groups;
 :data:`omnidl.nn.winograd.MIN_CHANNELS` or more channels each way; enough tiles in the batch for the weight
-(:data:`MIN_TILES`). :func:`pack`
-transforms and packs a weight once; :func:`forward` runs a layer.
+(:data:`MIN_TILES`). :func:`pack` transforms and packs a weight once; :func:`forward` runs a layer.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
 
-from . import fused, winograd
+from . import winograd
 
 #: the fewest tiles (pairs of outputs) in the batch are ``MIN_TILES + C * Cout // TILES_PER_WEIGHT``: with fewer,
 #: the transformed weight (4/3 of the weight) is read for too few products. Measured on 2 threads (AVX-512 host)
@@ -57,10 +56,9 @@ def pack(lib, weight: Tensor) -> Tensor | None:
 
 
 def block_tiles(C: int, cout: int) -> int:
-    """Tiles per block: their transformed inputs (4 x 3C) and products (4 x cout) about
-    :data:`omnidl.nn.fused.BLOCK_BYTES`, a multiple of :data:`omnidl.nn.fused.TILE_ROWS`, at least 24."""
-    t = fused.TILE_ROWS
-    return max(24, fused.BLOCK_BYTES // (16 * (3 * C + cout)) // t * t)
+    """Tiles per block (:func:`omnidl.nn.winograd.block_tiles` for 4 planes of 3C transformed inputs and of cout
+    products per tile)."""
+    return winograd.block_tiles(3 * C, cout, planes=4)
 
 
 def forward(lib, x: Tensor, wrap: int, packed: Tensor, cout: int, bias: Tensor | None, relu: bool) -> Tensor:
@@ -71,8 +69,5 @@ def forward(lib, x: Tensor, wrap: int, packed: Tensor, cout: int, bias: Tensor |
     rc = lib.omnidl_wino_rows_forward(x.data_ptr(), B, H, W, C, 2, int(wrap), packed.data_ptr(), cout,
                                       None if bias is None else bias.data_ptr(), out.data_ptr(), int(relu),
                                       block_tiles(C, cout), torch.get_num_threads())
-    if rc == 1:
-        raise MemoryError("omnidl row Winograd convolution: the native kernel could not allocate its buffers")
-    if rc:
-        raise RuntimeError(f"omnidl row Winograd convolution: the native kernel returned {rc}")
+    winograd.check(rc, "row Winograd convolution")
     return out

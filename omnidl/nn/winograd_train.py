@@ -27,7 +27,7 @@ from torch import Tensor
 from . import native, thin_layout, winograd
 from .capture import capturing
 from .offsets import _pair
-from .sampling import _is_channels_last
+from .sampling import _is_channels_last, weight_channels_last
 
 CL = torch.channels_last
 #: ``False`` leaves every layer to oneDNN (benchmarks' in-process A/B)
@@ -151,7 +151,7 @@ class _WinogradConv(torch.autograd.Function):
                                              block, work.data_ptr(), threads)
             if rc:
                 raise RuntimeError(f"omnidl Winograd convolution: the weight gradient returned {rc}")
-            if weight.is_contiguous(memory_format=CL) and not weight.is_contiguous():
+            if weight_channels_last(weight):
                 gw = gw.contiguous(memory_format=CL)
         if need_b:
             gb = gy.sum((0, 2, 3))
