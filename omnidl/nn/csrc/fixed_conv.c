@@ -37,9 +37,9 @@ extern int MKL_Set_Num_Threads_Local(int n) __attribute__((weak));
 #endif
 /* k-steps ahead at which a panel's rows are prefetched on its first pass (`prefetch`; B_PREFETCH 0: never). A
  * weight streamed from memory past few rows of a (a deep layer on a small map) waits on its loads otherwise: on a
- * Zen 4 host, 2048 -> 512 channels 3x3 on 4x8 took 5.7 against 6.3 ms, a 2048 -> 1024 row Winograd on 16x32 51
- * against 59 ms. Later passes find the panel in the cache and take no prefetches (with them on every pass a
- * FreDSNet training step ran 3-4 % slower) */
+ * Zen 4 host, 2048 -> 512 channels 3x3 on 4x8 took 5.8 against 6.4 ms, a 2048 -> 1024 row Winograd on 16x32 52.9
+ * against 56.3 ms. Later passes find the panel in the cache and take no prefetches (with them on every pass a
+ * FreDSNet training step ran 2-5 % slower) */
 #ifndef B_PREFETCH
 #define B_PREFETCH 16
 #endif
