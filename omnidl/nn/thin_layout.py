@@ -70,11 +70,18 @@ class _ToChannelsLast(torch.autograd.Function):
         left, right = ctx.left, ctx.right
         if torch.is_grad_enabled():                    # create_graph: differentiable ops
             return unwrap(g, left, right).contiguous(), None, None
-        g = g.contiguous(memory_format=torch.channels_last)
-        B, C, H, Wp = g.shape
-        gx = g.new_empty((B, C, H, Wp - left - right))
-        _run("omnidl_wrap_from_nhwc", gx, g, left, right)
-        return gx, None, None
+        return from_wrapped_nhwc(g, left, right), None, None
+
+
+def from_wrapped_nhwc(g: Tensor, left: int, right: int) -> Tensor:
+    """The adjoint of :func:`to_channels_last` outside autograd: ``g (B, C, H, left + W + right)`` (float32 CPU, any
+    memory format; the native library built) -> contiguous ``(B, C, H, W)``, the wrapped strips added onto the
+    columns they came from."""
+    g = g.contiguous(memory_format=torch.channels_last)
+    B, C, H, Wp = g.shape
+    gx = g.new_empty((B, C, H, Wp - left - right))
+    _run("omnidl_wrap_from_nhwc", gx, g, left, right)
+    return gx
 
 
 def to_nchw(t: Tensor) -> Tensor:
@@ -90,6 +97,19 @@ def to_nchw(t: Tensor) -> Tensor:
         nhwc_into_nchw(t.permute(0, 2, 3, 1), out)
         return out
     return t.contiguous()
+
+
+def to_nhwc(t: Tensor) -> Tensor:
+    """``t (B, C, H, W)`` in channels-last memory: ``t.contiguous(memory_format=torch.channels_last)``, for a
+    contiguous float32 CPU map outside autograd with the native library built in one native pass (torch's copy took
+    0.44 against 0.035 ms for 128 channels on 32x64, 2 threads). ``t`` itself when already channels-last."""
+    if t.is_contiguous(memory_format=torch.channels_last):
+        return t
+    if (t.dim() == 4 and t.is_contiguous() and native_pass(t) and not (torch.is_grad_enabled() and t.requires_grad)):
+        out = torch.empty(t.shape, dtype=t.dtype, memory_format=torch.channels_last)
+        _run("omnidl_wrap_to_nhwc", t, out, 0, 0)
+        return out
+    return t.contiguous(memory_format=torch.channels_last)
 
 
 def native_pass(*ts: Tensor) -> bool:

@@ -114,7 +114,7 @@ class _WinogradConv(torch.autograd.Function):
         lib = native.library()
         B, C, H, W = x.shape
         cout = weight.shape[0]
-        xc = x.contiguous(memory_format=CL)
+        xc = thin_layout.to_nhwc(x)
         out = torch.empty((B, cout, H, W), dtype=x.dtype, memory_format=CL)
         b = None if bias is None else bias.detach().contiguous()
         winograd.forward(lib, xc, wrap, _pack(lib, weight, False), cout, b, out, False, False)
@@ -136,7 +136,7 @@ class _WinogradConv(torch.autograd.Function):
         lib = native.library()
         B, C, H, W = x.shape
         cout = weight.shape[0]
-        g = gy.contiguous(memory_format=CL)
+        g = thin_layout.to_nhwc(gy)
         gx = gw = gb = None
         if need_x:
             gxc = torch.empty((B, C, H, W), dtype=gy.dtype, memory_format=CL)
@@ -146,7 +146,7 @@ class _WinogradConv(torch.autograd.Function):
             gw = torch.empty(weight.shape, dtype=weight.dtype)
             block, threads = weight_block(C, cout), torch.get_num_threads()
             work = _scratch("work", lib.omnidl_wino_weight_grad_floats(H, W, C, cout, block, threads))
-            xc = x.detach().contiguous(memory_format=CL)
+            xc = thin_layout.to_nhwc(x.detach())
             rc = lib.omnidl_wino_weight_grad(xc.data_ptr(), g.data_ptr(), B, H, W, C, cout, ctx.wrap, gw.data_ptr(),
                                              block, work.data_ptr(), threads)
             if rc:

@@ -14,7 +14,9 @@ needs_native = pytest.mark.skipif(native.library() is None, reason="no native li
 
 @needs_native
 @pytest.mark.parametrize("B,C,H,W,left,right", [(2, 19, 3, 37, 2, 1), (1, 16, 2, 16, 1, 1), (1, 5, 4, 9, 0, 3),
-                                                (1, 3, 2, 6, 6, 6), (2, 7, 3, 20, 0, 0)])
+                                                (1, 3, 2, 6, 6, 6), (2, 7, 3, 20, 0, 0),
+                                                # whole 16 x 16 register blocks, with and without partial edges
+                                                (1, 32, 2, 48, 0, 0), (2, 48, 3, 35, 17, 16), (1, 33, 2, 64, 16, 1)])
 def test_the_layout_kernels_equal_the_wrap_and_its_adjoint(B, C, H, W, left, right):
     g = torch.Generator().manual_seed(C * W)
     x = torch.randn(B, C, H, W, generator=g, requires_grad=True)
@@ -54,6 +56,28 @@ def test_to_nchw_equals_contiguous(shape, dtype, grad, native_pass, monkeypatch)
 def test_to_nchw_keeps_a_contiguous_map():
     t = torch.randn(1, 4, 3, 5)
     assert thin_layout.to_nchw(t) is t
+
+
+# (shape, dtype, requires grad, takes the native pass)
+TO_NHWC = [((2, 19, 3, 37), torch.float32, False, True), ((1, 64, 8, 16), torch.float32, False, True),
+           ((1, 128, 32, 64), torch.float32, False, True), ((1, 3, 1, 5), torch.float32, False, True),
+           ((1, 8, 4, 6), torch.float64, False, False), ((1, 8, 4, 6), torch.float32, True, False)]
+
+
+@needs_native
+@pytest.mark.parametrize("shape,dtype,grad,native_pass", TO_NHWC)
+def test_to_nhwc_equals_contiguous(shape, dtype, grad, native_pass, monkeypatch):
+    g = torch.Generator().manual_seed(shape[1])
+    t = torch.randn(shape, generator=g, dtype=dtype).requires_grad_(grad)
+    calls = []
+    run = thin_layout._run
+    monkeypatch.setattr(thin_layout, "_run", lambda *a: (calls.append(a[0]), run(*a)))
+    out = thin_layout.to_nhwc(t)
+    assert out.is_contiguous(memory_format=torch.channels_last) and out.dtype == dtype
+    torch.testing.assert_close(out, t.contiguous(memory_format=torch.channels_last), rtol=0, atol=0)
+    assert calls == (["omnidl_wrap_to_nhwc"] if native_pass else [])
+    cl = t.detach().contiguous(memory_format=torch.channels_last)
+    assert thin_layout.to_nhwc(cl) is cl
 
 
 # (name, module, x shape, takes channels-last)
