@@ -39,6 +39,7 @@ from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_bloc
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
 from omnidl.nn.conv_switch import conv_choice
+from omnidl.nn.padding import CircularConv2d
 from omnidl.nn.wconv import ConvNormAct, WConv
 
 from ._backbone import ResNetFeatures
@@ -131,7 +132,12 @@ class FusionHead(nn.Module):
         if not blocked or torch.is_grad_enabled():
             # blocks pay off without autograd; with it every full-size buffer is kept anyway, and the backward
             # of each block's row slices would write full-size gradient buffers: the whole sum at once
-            return self.out(upsample_sum([med(d) for med, d in zip(self.mediators, maps)], weights, (H, W)))
+            ups = [med(d) for med, d in zip(self.mediators, maps)]
+            conv = self.out.conv
+            wrap = conv.channels_last_wrap(ups[-1]) if isinstance(conv, CircularConv2d) else 0
+            if wrap:                                    # a thin output conv: the sum written wrapped, channels-last
+                return self.out.act(self.out.norm(conv.conv_wrapped(upsample_sum(ups, weights, (H, W), wrap=wrap))))
+            return self.out(upsample_sum(ups, weights, (H, W)))
         mediated = [med.row_source(d) if not self.training and d.shape[-2:] == (H, W) else med(d)
                     for med, d in zip(self.mediators, maps)]
         fused = UpsampleSum(mediated, weights, size=(H, W))      # sum_i w_i up(m_i), by row blocks

@@ -16,6 +16,8 @@ the weights and the convolution.
 """
 from __future__ import annotations
 
+import ctypes
+import functools
 from typing import Callable, Sequence
 
 import torch
@@ -23,9 +25,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import native
+from . import native, thin_layout
 from .capture import capturing
-from .padding import CircularConv2d, wrapped_conv2d
+from .padding import CircularConv2d, pad_panorama, wrapped_conv2d
 
 #: ``f(a, b) -> (B, C, b - a, W)``: rows ``a:b`` of a full-size map, computed on demand
 RowSource = Callable[[int, int], Tensor]
@@ -165,61 +167,115 @@ def _rows_of(flat: Tensor, a: int, b: int) -> Tensor:
 
 
 def upsample_sum(maps: Sequence[Tensor], weights: Sequence[Tensor | float | None],
-                 size: tuple[int, int] | None = None) -> Tensor:
+                 size: tuple[int, int] | None = None, wrap: int = 0) -> Tensor:
     """``sum_i w_i * F.interpolate(m_i, size, mode="bilinear", align_corners=True)`` (see :class:`UpsampleSum`).
 
-    Under autograd, for contiguous float32 CPU maps with the native library built, the backward is the adjoint
-    of each up-sampling (``csrc/upsample.c``): ``r_i = A_h^T g A_w`` once per map, from which the map's
-    gradient is ``w_i r_i`` and the weight's ``<r_i, m_i>``. Autograd's own backward of the row-block products
-    computes the gradient of each map's whole expanded interpolation matrix just to reduce it to the scalar
-    weight's (the backward of FreDSNet's semantic-branch sum at 256x128: about 15 against 41 ms)."""
-    if _adjoint_applies(maps, weights):
-        H, W = size if size is not None else max((tuple(m.shape[-2:]) for m in maps), key=lambda s: s[0] * s[1])
-        return _UpsampleSumFunction.apply((int(H), int(W)), len(maps), *maps, *weights)
-    return UpsampleSum(maps, weights, size).full()
+    ``wrap > 0``: the sum with the panorama's horizontal wrap, ``wrap`` columns each side (the last ``wrap`` columns
+    first, the first ``wrap`` last), in channels-last memory: ``(B, C, H, wrap + W + wrap)``, the input a thin
+    wrapped convolution takes (:meth:`omnidl.nn.padding.CircularConv2d.channels_last_wrap`).
+
+    For contiguous float32 CPU maps with the native library built (:func:`native_applies`) the sum is one native
+    pass (``csrc/upsample.c``) that writes each output value once, in either layout. Under autograd its backward is
+    the adjoint of each up-sampling: ``r_i = A_h^T g A_w`` once per map, from which the map's gradient is ``w_i r_i``
+    and the weight's ``<r_i, m_i>``. Autograd's own backward of the row-block products computes the gradient of each
+    map's whole expanded interpolation matrix just to reduce it to the scalar weight's (the backward of FreDSNet's
+    semantic-branch sum at 256x128: about 15 against 41 ms)."""
+    if wrap < 0:
+        raise ValueError(f"upsample_sum: wrap must be >= 0 columns, got {wrap}")
+    if maps and size is None:
+        size = max((tuple(m.shape[-2:]) for m in maps), key=lambda s: s[0] * s[1])
+    if native_applies(maps, weights) and wrap <= size[1]:
+        H, W = int(size[0]), int(size[1])
+        recorded = torch.is_grad_enabled() and any(t.requires_grad for t in [*maps, *weights] if isinstance(t, Tensor))
+        if not recorded:
+            return _native_sum(maps, weights, (H, W), wrap)
+        if ADJOINT_BACKWARD:
+            return _UpsampleSumFunction.apply((H, W), int(wrap), len(maps), *maps, *weights)
+    total = UpsampleSum(maps, weights, size).full()
+    return pad_panorama(total, wrap).contiguous(memory_format=torch.channels_last) if wrap else total
 
 
 #: ``False``: autograd's own backward for :func:`upsample_sum` (benchmarks' in-process A/B)
 ADJOINT_BACKWARD = True
+#: ``False``: :func:`upsample_sum` never takes the native pass (benchmarks' in-process A/B)
+NATIVE_SUM = True
 
 
-def _adjoint_applies(maps: Sequence, weights: Sequence) -> bool:
-    if not (ADJOINT_BACKWARD and torch.is_grad_enabled() and maps and len(maps) == len(weights)):
+def native_applies(maps: Sequence, weights: Sequence) -> bool:
+    """Whether :func:`upsample_sum` runs natively: contiguous float32 CPU maps ``(B, C, h, w)`` with the same
+    ``B, C``, one weight each (``None``, a number or a one-value CPU tensor), the native library built, not captured
+    by ``torch.compile``/export."""
+    if not (NATIVE_SUM and maps and len(maps) == len(weights)):
         return False
     if not all(isinstance(m, Tensor) for m in maps) or capturing():
         return False
     B, C = maps[0].shape[:2]
     return (all(m.dim() == 4 and m.shape[:2] == (B, C) and m.dtype == torch.float32 and m.device.type == "cpu"
                 and m.is_contiguous() and m.numel() > 0 for m in maps)
-            and any(t.requires_grad for t in [*maps, *weights] if isinstance(t, Tensor))
             and native.library() is not None
             and all(w is None or not isinstance(w, Tensor) or (w.numel() == 1 and w.device.type == "cpu")
                     for w in weights))
 
 
+@functools.lru_cache(maxsize=256)
+def _taps32(n_out: int, n_in: int) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_linear_taps` with float32 weights (kept: the tables are read only)."""
+    i0, i1, f = _linear_taps(n_out, n_in)
+    return i0, i1, f.float()
+
+
+def _native_sum(maps: Sequence[Tensor], weights: Sequence[Tensor | float | None], size: tuple[int, int],
+                wrap: int) -> Tensor:
+    """The sum of :func:`upsample_sum` in one native pass (where :func:`native_applies`), without autograd."""
+    B, C = maps[0].shape[:2]
+    H, W = size
+    rows = [_taps32(H, m.shape[-2]) for m in maps]
+    cols = [_taps32(W, m.shape[-1]) for m in maps]
+    ri0, ri1, rf = (torch.cat([t[k] for t in rows]) for k in range(3))
+    ci0, ci1, cf = (torch.cat([t[k] for t in cols]) for k in range(3))
+    hs = torch.tensor([m.shape[-2] for m in maps], dtype=torch.int64)
+    ws = torch.tensor([m.shape[-1] for m in maps], dtype=torch.int64)
+    wts = torch.tensor([1.0 if w is None else float(w) for w in weights], dtype=torch.float32)
+    ptrs = (ctypes.c_void_p * len(maps))(*[m.data_ptr() for m in maps])
+    if wrap:
+        out = torch.empty((B, C, H, W + 2 * wrap), dtype=torch.float32, memory_format=torch.channels_last)
+    else:
+        out = torch.empty((B, C, H, W), dtype=torch.float32)
+    rc = native.library().omnidl_upsample_sum(
+        ptrs, len(maps), hs.data_ptr(), ws.data_ptr(), wts.data_ptr(), B, C, H, W, ri0.data_ptr(), ri1.data_ptr(),
+        rf.data_ptr(), ci0.data_ptr(), ci1.data_ptr(), cf.data_ptr(), int(bool(wrap)), wrap, wrap, out.data_ptr(),
+        max(1, torch.get_num_threads()))
+    if rc:
+        raise MemoryError(f"omnidl up-sampled sum: could not allocate its {C}x{W} scratch row")
+    return out
+
+
 class _UpsampleSumFunction(torch.autograd.Function):
-    """:class:`UpsampleSum`'s full sum of ``maps`` then ``weights`` (``args``); the backward by the adjoint of each
-    map's up-sampling."""
+    """:func:`_native_sum` of ``maps`` then ``weights`` (``args``); the backward by the adjoint of each map's
+    up-sampling."""
 
     @staticmethod
-    def forward(ctx, size: tuple[int, int], n: int, *args):   # type: ignore[override]
+    def forward(ctx, size: tuple[int, int], wrap: int, n: int, *args):   # type: ignore[override]
         maps, weights = args[:n], args[n:]
-        ctx.size, ctx.n = size, n
+        ctx.size, ctx.wrap, ctx.n = size, wrap, n
         ctx.numbers = [None if isinstance(w, Tensor) else (1.0 if w is None else float(w)) for w in weights]
         ctx.save_for_backward(*maps, *[w for w in weights if isinstance(w, Tensor)])
-        return UpsampleSum(maps, weights, size).full()
+        return _native_sum(maps, weights, size, wrap)
 
     @staticmethod
     def backward(ctx, g: Tensor):   # type: ignore[override]
         n, saved = ctx.n, ctx.saved_tensors
         maps, tensor_weights = saved[:n], iter(saved[n:])
         need = ctx.needs_input_grad
+        if ctx.wrap:      # the adjoint of the wrap and of the layout change first: (B, C, H, W) contiguous
+            g = thin_layout.unwrap(g, ctx.wrap, ctx.wrap) if torch.is_grad_enabled() else \
+                thin_layout.from_wrapped_nhwc(g, ctx.wrap, ctx.wrap)
         g = g.contiguous()
         grads_m: list[Tensor | None] = []
         grads_w: list[Tensor | None] = []
         for i, (m, number) in enumerate(zip(maps, ctx.numbers)):
             w = next(tensor_weights) if number is None else number
-            need_m, need_w = need[2 + i], isinstance(w, Tensor) and need[2 + n + i]
+            need_m, need_w = need[3 + i], isinstance(w, Tensor) and need[3 + n + i]
             r = None
             if need_m or need_w:
                 if m.shape[-2:] == tuple(ctx.size):
@@ -231,7 +287,7 @@ class _UpsampleSumFunction(torch.autograd.Function):
             grads_m.append(None if not need_m else r if not isinstance(w, Tensor) and w == 1.0
                            else r * (w.reshape(()) if isinstance(w, Tensor) else w))
             grads_w.append(torch.dot(r.reshape(-1), m.reshape(-1)).reshape(w.shape) if need_w else None)
-        return (None, None, *grads_m, *grads_w)
+        return (None, None, None, *grads_m, *grads_w)
 
 
 def _adjoint(g: Tensor, h: int, w: int) -> Tensor:

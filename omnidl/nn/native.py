@@ -183,6 +183,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_prelu_backward_cl.restype = i
     lib.omnidl_upsample_adjoint.argtypes = [p, n, n, n, n, n, p, p, p, p, p, p, p, i]
     lib.omnidl_upsample_adjoint.restype = i
+    lib.omnidl_upsample_sum.argtypes = [p, n, p, p, p, n, n, n, n, p, p, p, p, p, p, i, n, n, p, i]
+    lib.omnidl_upsample_sum.restype = i
     lib.omnidl_expand_forward.argtypes = [p, n, i, n, p, p, i, i, p, i, p, i]
     lib.omnidl_expand_forward.restype = i
     lib.omnidl_expand_sums.argtypes = [p, p, n, i, n, p, p, i, i, p, i, p, i]

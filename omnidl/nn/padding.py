@@ -132,17 +132,45 @@ class CircularConv2d(nn.Conv2d):
         """The convolution with the given ``weight``/``bias`` (``nn.Conv2d.forward`` calls this with its own;
         :class:`omnidl.nn.wconv.ConvNormAct` with BatchNorm folded in)."""
         ph, pw = self.wrap_padding
-        if (pw and self.stride == (1, 1) and 2 * pw == self.dilation[1] * (self.kernel_size[1] - 1)
-                and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL and not torch.is_grad_enabled()):
+        path = self._path(x, weight)
+        if path == "strips":
             return wrapped_conv2d(x, weight, bias, (ph, pw), self.dilation, self.groups)
-        if (pw, ph) == (1, 1) and winograd_train.applies(x, weight, self.stride, 1, self.dilation, self.groups):
+        if path == "winograd":
             return winograd_train.conv2d(x, weight, bias, wrap=1)          # a 3x3 layer in training, wrapped
-        if pw and pw <= x.shape[-1] and thin_layout.pays(x, weight):    # a thin head: wrapped into channels-last
-            x = thin_layout.to_channels_last(x, pw, pw)
-            return F.conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups).contiguous()
+        if path == "channels-last":                                      # a thin head: wrapped into channels-last
+            return self._conv_wrapped(thin_layout.to_channels_last(x, pw, pw), weight, bias)
         if pw:
             x = pad_panorama(x, pw)
         return conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups)
+
+    def _path(self, x: Tensor, weight: Tensor) -> str:
+        """How :meth:`_conv_forward` convolves ``x``: ``"strips"`` (no autograd, a large map: zero padding, then the
+        border columns again from a thin wrapped strip), ``"winograd"`` (a 3x3 layer in training), ``"channels-last"``
+        (a thin head in training: on a wrapped channels-last copy) or ``"padded"`` (on a wrapped copy)."""
+        ph, pw = self.wrap_padding
+        if (pw and self.stride == (1, 1) and 2 * pw == self.dilation[1] * (self.kernel_size[1] - 1)
+                and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL and not torch.is_grad_enabled()):
+            return "strips"
+        if (pw, ph) == (1, 1) and winograd_train.applies(x, weight, self.stride, 1, self.dilation, self.groups):
+            return "winograd"
+        if pw and pw <= x.shape[-1] and thin_layout.pays(x, weight):
+            return "channels-last"
+        return "padded"
+
+    def channels_last_wrap(self, x: Tensor) -> int:
+        """The columns on each side by which this convolution wraps ``x`` into channels-last memory (its thin-head
+        path), or 0 where it takes another path. A caller that computes ``x`` itself can write it that way at once
+        (e.g. :func:`omnidl.nn.fusion.upsample_sum` with ``wrap``) and call :meth:`conv_wrapped`."""
+        return self.wrap_padding[1] if self._path(x, self.weight) == "channels-last" else 0
+
+    def conv_wrapped(self, xp: Tensor) -> Tensor:
+        """The convolution of a map given already wrapped: ``xp (B, C, H, pw + W + pw)`` channels-last, with ``pw``
+        from :meth:`channels_last_wrap` -> ``(B, Cout, Ho, Wo)`` contiguous, equal to ``self(x)``."""
+        return self._conv_wrapped(xp, self.weight, self.bias)
+
+    def _conv_wrapped(self, xp: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+        ph = self.wrap_padding[0]
+        return F.conv2d(xp, weight, bias, self.stride, (ph, 0), self.dilation, self.groups).contiguous()
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", wrap_padding={self.wrap_padding} (horizontal wrap)"

@@ -1,5 +1,5 @@
 """Row-blocked up-sample sums and convolutions (omnidl.nn.fusion) against the literal F.interpolate + conv; the
-native adjoint backward of upsample_sum against autograd's of F.interpolate, on a table of cases."""
+native sum and adjoint backward of upsample_sum against F.interpolate and its autograd, on tables of cases."""
 import pytest
 import torch
 import torch.nn as nn
@@ -8,7 +8,7 @@ import torch.nn.functional as F
 import omnidl.nn.fusion as fusion
 from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, interpolation_matrix, upsample_sum
 from omnidl.nn import native
-from omnidl.nn.padding import CircularConv2d
+from omnidl.nn.padding import CircularConv2d, pad_panorama
 
 SIZES = [(2, 4), (4, 8), (8, 16), (16, 32)]
 
@@ -179,3 +179,75 @@ def test_adjoint_switch_and_eval_take_the_row_blocks(monkeypatch):
     monkeypatch.setattr(fusion, "ADJOINT_BACKWARD", True)
     with torch.no_grad():
         assert upsample_sum(ms, [None, 0.5]).grad_fn is None
+
+
+# (name, map sizes, weight kinds, output size, batch, channels, wrap)
+NATIVE_SUM = [
+    ("FreDSNet's semantic branch: 1 + 4 maps, wrapped", [(2, 4), (4, 8), (8, 16), (16, 32)],
+     ["none", "tensor", "tensor", "tensor"], None, 1, 37, 1),
+    ("the same, NCHW", [(2, 4), (4, 8), (8, 16), (16, 32)], ["none", "tensor", "tensor", "tensor"], None, 1, 37, 0),
+    ("full-size map not first, batch 2", [(16, 32), (4, 8)], ["number", "tensor (1,)"], None, 2, 16, 2),
+    ("one row, one column, odd factors", [(1, 7), (5, 1), (6, 11)], ["tensor", "tensor", "none"], (11, 23), 1, 5, 3),
+    ("only a full-size map", [(6, 10)], ["number"], None, 1, 3, 1),
+    ("one small map, none of the output's size", [(3, 4)], ["none"], (7, 9), 2, 33, 0),
+    ("a wrap of the whole width", [(2, 3), (4, 6)], ["none", "number"], None, 1, 4, 6),
+]
+
+
+@pytest.mark.skipif(native.library() is None, reason="no native library")
+@pytest.mark.parametrize("name,sizes,kinds,size,B,C,wrap", NATIVE_SUM, ids=[a[0] for a in NATIVE_SUM])
+def test_native_sum_equals_interpolate_with_and_without_autograd(name, sizes, kinds, size, B, C, wrap):
+    """The native pass (csrc/upsample.c), NCHW or wrapped channels-last, against F.interpolate + sum (+ the wrap);
+    under autograd its backward against autograd's of the literal sum."""
+    g = torch.Generator().manual_seed(len(name))
+    ms = [torch.randn(B, C, h, w, generator=g) for h, w in sizes]
+    ws = [_w(k, g) for k in kinds]
+    H, W = size or max(sizes, key=lambda s: s[0] * s[1])
+    ref = _literal(ms, ws, (H, W))
+    ref = pad_panorama(ref, wrap) if wrap else ref
+    with torch.no_grad():
+        out = upsample_sum(ms, ws, (H, W), wrap=wrap)
+    assert out.shape == ref.shape and out.grad_fn is None
+    assert out.is_contiguous(memory_format=torch.channels_last) if wrap else out.is_contiguous()
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-5 * ref.abs().max().item())
+    for m in ms:
+        m.requires_grad_()
+    y = upsample_sum(ms, ws, (H, W), wrap=wrap)
+    assert type(y.grad_fn).__name__ == "_UpsampleSumFunctionBackward"
+    torch.testing.assert_close(y, out, rtol=0, atol=0)
+    ref = _literal(ms, ws, (H, W))
+    ref = pad_panorama(ref, wrap) if wrap else ref
+    up = torch.randn(ref.shape, generator=g)
+    inputs = [t for t in ms + ws if isinstance(t, torch.Tensor) and t.requires_grad]
+    for a, b in zip(torch.autograd.grad(y, inputs, up), torch.autograd.grad(ref, inputs, up)):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * b.abs().max().item())
+
+
+def test_wrapped_sum_without_the_native_pass_and_bad_wraps(monkeypatch):
+    g = torch.Generator().manual_seed(9)
+    ms = [torch.randn(1, 3, h, 2 * h, generator=g, dtype=torch.float64) for h in (2, 4)]
+    ref = pad_panorama(_literal(ms, [None, 0.5], (4, 8)), 2)
+    out = upsample_sum(ms, [None, 0.5], wrap=2)                 # float64: the row blocks, then the wrap
+    assert out.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-12)
+    monkeypatch.setattr(fusion, "NATIVE_SUM", False)
+    ms32 = [m.float() for m in ms]
+    torch.testing.assert_close(upsample_sum(ms32, [None, 0.5], wrap=2), ref.float(), rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="wrap must be >= 0"):
+        upsample_sum(ms32, [None, 0.5], wrap=-1)
+
+
+def test_circular_conv_takes_a_sum_written_wrapped():
+    """CircularConv2d.channels_last_wrap / conv_wrapped: the thin head's convolution of a map written wrapped in
+    channels-last memory equals the module's own call (and the other paths answer 0)."""
+    g = torch.Generator().manual_seed(5)
+    conv = CircularConv2d(16, 3, 3, padding=1)
+    x = torch.randn(1, 16, 64, 128, generator=g, requires_grad=True)
+    pw = conv.channels_last_wrap(x)
+    assert pw == (1 if native.library() is not None else 0)
+    if pw:
+        torch.testing.assert_close(conv.conv_wrapped(pad_panorama(x, pw).contiguous(memory_format=torch.channels_last)),
+                                   conv(x), rtol=1e-5, atol=1e-5)
+    with torch.no_grad():
+        assert conv.channels_last_wrap(x) == 0                  # no autograd: the border strips
+    assert CircularConv2d(16, 32, 3, padding=1).channels_last_wrap(x) == 0     # 32 outputs: not thin
