@@ -67,16 +67,15 @@ class _ToChannelsLast(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g: Tensor) -> tuple[Tensor, None, None]:   # type: ignore[override]
-        left, right = ctx.left, ctx.right
-        if torch.is_grad_enabled():                    # create_graph: differentiable ops
-            return unwrap(g, left, right).contiguous(), None, None
-        return from_wrapped_nhwc(g, left, right), None, None
+        return wrap_adjoint(g, ctx.left, ctx.right), None, None
 
 
-def from_wrapped_nhwc(g: Tensor, left: int, right: int) -> Tensor:
-    """The adjoint of :func:`to_channels_last` outside autograd: ``g (B, C, H, left + W + right)`` (float32 CPU, any
-    memory format; the native library built) -> contiguous ``(B, C, H, W)``, the wrapped strips added onto the
-    columns they came from."""
+def wrap_adjoint(g: Tensor, left: int, right: int) -> Tensor:
+    """The adjoint of :func:`to_channels_last`: ``g (B, C, H, left + W + right)`` (float32 CPU, any memory format;
+    the native library built) -> contiguous ``(B, C, H, W)``, the wrapped strips added onto the columns they came
+    from; in one native pass, or by differentiable ops when autograd records (``create_graph``)."""
+    if torch.is_grad_enabled():
+        return unwrap(g, left, right).contiguous()
     g = g.contiguous(memory_format=torch.channels_last)
     B, C, H, Wp = g.shape
     gx = g.new_empty((B, C, H, Wp - left - right))

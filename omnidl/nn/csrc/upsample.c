@@ -68,10 +68,11 @@ void omnidl_turn(const float *restrict src, int64_t sc, int64_t C, int64_t n, fl
 
 /* row[x] (+)= s * src[x] over n values; assigns when first */
 static void put_scaled(float *restrict row, const float *restrict src, float s, int64_t n, int first) {
-    if (first)
-        for (int64_t x = 0; x < n; ++x) row[x] = s * src[x];
-    else
-        for (int64_t x = 0; x < n; ++x) row[x] += s * src[x];
+    if (!first) {
+        add_scaled(row, src, s, n);
+        return;
+    }
+    for (int64_t x = 0; x < n; ++x) row[x] = s * src[x];
 }
 
 /* The weighted sum of n maps, each bilinearly up-sampled (align_corners=True) to (H, W):
