@@ -22,6 +22,9 @@ def _gather(rays: ColumnRays, cols: np.ndarray, mask: np.ndarray):
 def reprojection_errors(fit_theta, fit_d, fit_hc, fit_hf, rays: ColumnRays, cols: np.ndarray):
     """Latitude errors ``(..., n)`` (radians, first order) of ceiling and floor, walls broadcast over columns.
 
+    ``fit_*`` have shape ``(...)`` and ``cols`` ``(..., n)``, where the leading dimensions need only
+    broadcast: ``cols (n_w, 1, n)`` against hypotheses ``(n_w, n_hyp)`` gathers each column once.
+
     The column sees the wall line at horizontal range ``s`` and predicted ``tan(lat) = h / s``; the
     error ``|h/s - tan(lat_obs)| cos^2(lat_obs)`` is the angular error to first order (no arctan:
     this runs on every hypothesis x column).
@@ -79,7 +82,7 @@ def ransac_walls(rays: ColumnRays, wall_columns: list[np.ndarray], threshold: fl
     else:
         hyp = solve_walls_central(rays.ceiling[flat], rays.floor[flat], camera_height=camera_height)
     th, d, hc, hf = (x.reshape(n_w, n_hyp) for x in (hyp.theta, hyp.d, hyp.h_c, hyp.h_f))
-    ec, ef = reprojection_errors(th, d, hc, hf, rays, np.broadcast_to(cols[:, None], (n_w, n_hyp, L)))
+    ec, ef = reprojection_errors(th, d, hc, hf, rays, cols[:, None, :])              # (n_w, n_hyp, L)
     inl = (ec < threshold) & (ef < threshold) & mask[:, None, :]
     score = inl.sum(-1) - np.where(hyp.ok.reshape(n_w, n_hyp), 0, L + 1)
     best = np.argmax(score, -1)
