@@ -153,8 +153,13 @@ def main(argv: list[str] | None = None) -> dict:
     res["std_fwd_target_met"] = res["std_fwd_512x256"] <= 0.8
     res["load_after"] = os.getloadavg()
     print(load_line(a.threads, "at end"))
-    print(f"Std forward target (<= 0.8 s): {'met' if res['std_fwd_target_met'] else 'NOT met'} "
-          f"(load average {res['load_after']}; absolute times need an idle machine)")
+    print(f"TARGET FreDSNet-std forward 512x256: {res['std_fwd_512x256']:.3f} s = "
+          f"{res['std_fwd_512x256_ratio_resnet50']:.2f}x resnet50's forward "
+          f"(target <= 0.8 s: {'met' if res['std_fwd_target_met'] else 'MISSED'})")
+    if "equi_over_std_fwd" in res:
+        r = res["equi_over_std_fwd"]
+        print(f"TARGET FreDSNet-equi forward 512x256: {res['equi_fwd_512x256']:.3f} s = {r:.2f}x FreDSNet-std's "
+              f"(target <= 1.3x: {'met' if r <= 1.3 else 'MISSED'})")
     if a.json:
         from omnidl.utils.io import atomic_write_json
         atomic_write_json(a.json, res)

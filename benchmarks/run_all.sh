@@ -5,7 +5,10 @@
 # average has fallen below SETTLE_LOAD (default 1.0), at most SETTLE_MAX seconds (default 90): run back to
 # back, each benchmark would start with the load its predecessor's own threads left in that average.
 # Every load line also gives the hypervisor's steal share since the previous check (flagged STOLEN above 10 %).
-# Usage: bash benchmarks/run_all.sh [OUT_DIR]
+# The side-by-side runs against the public models (issue 17 items 3 and 4) measure only where the public model
+# files are brought in: HORIZONNET_REF_DIR and FREDSNET_REF_DIR (see benchmarks/public_models.py); without
+# them their lines say so.
+# Usage: [HORIZONNET_REF_DIR=DIR] [FREDSNET_REF_DIR=DIR] bash benchmarks/run_all.sh [OUT_DIR]
 set -u
 cd "$(dirname "$0")/.."
 out="${1:-benchmarks/results/run_all}"
@@ -32,6 +35,9 @@ run gyroscope      python benchmarks/gyroscope.py speed --reps 5
 run contention     python benchmarks/contention.py --reps 5
 run synth          python benchmarks/synth.py --reps 5 --seeds 3 11
 run fredsnet       python benchmarks/fredsnet.py --reps 3
+run fredsnet_scale python benchmarks/fredsnet.py --scaling --reps 3
+run public_hnet    python benchmarks/public_models.py horizonnet --reps 5
+run public_fdsnet  python benchmarks/public_models.py fredsnet --reps 5
 run layout         python benchmarks/layout.py --reps 10
 run gpu            python benchmarks/gpu.py
 grep -h "^TARGET\|LOADED\|STOLEN" "$out"/*.txt > "$out/summary.txt"
