@@ -132,11 +132,13 @@ def host_line() -> str:
             f"kernel {kernel}")
 
 
-def is_loaded(threads: int) -> bool:
-    """True when the load exceeds ``threads`` or the steal share since the previous check exceeds
-    :data:`STEAL_FLAG` (benchmarks call it before and after their timed loop)."""
-    steal = steal_since_last()          # always taken: it is also this check's snapshot
-    return load1() > threads or stolen(steal)
+def is_loaded(threads: int, steal: bool = True) -> bool:
+    """True when the load exceeds ``threads`` or (``steal``) the steal share since the previous check exceeds
+    :data:`STEAL_FLAG`. Benchmarks call it before their timed loop with ``steal=False`` (that window is the
+    set-up: a plan built, a model warmed; steal there does not touch the figures) and after it with
+    ``steal=True`` (the window is the timed loop)."""
+    share = steal_since_last()          # always taken: it is also this check's snapshot
+    return load1() > threads or (steal and stolen(share))
 
 
 def interleaved(jobs: dict[str, Callable[[], object]], reps: int, warmup: int = 1,

@@ -122,7 +122,7 @@ def speed(args) -> dict:
           f"{args.reps} interleaved reps")
     print(host_line())
     print(load_line(args.threads, "at start"))
-    loaded = is_loaded(args.threads)
+    loaded = is_loaded(args.threads, steal=False)
     times = interleaved(jobs, args.reps, warmup=2)
     loaded = loaded or is_loaded(args.threads)
     print(load_line(args.threads, "at end"))

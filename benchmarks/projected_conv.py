@@ -119,7 +119,7 @@ def run_config(C: int, H: int, W: int, batch: int, reps: int, threads: int, defo
         f, fb = _jobs(dm, x, x.clone().requires_grad_(True))
         jobs["deform fwd"], jobs["deform fwd+bwd"] = f, fb
     capped = {"deform fwd": deform_reps, "deform fwd+bwd": deform_reps}
-    loaded_before = is_loaded(threads)
+    loaded_before = is_loaded(threads, steal=False)
     times = interleaved(jobs, reps, warmup=1, reps_of=capped)
     loaded = loaded_before or is_loaded(threads)
     med = {k: statistics.median(v) * 1e3 for k, v in times.items()}

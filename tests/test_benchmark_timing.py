@@ -74,3 +74,4 @@ def test_load_line_and_is_loaded_flag_steal(monkeypatch, steal, load, flags):
         assert (f"** {flag}" in line) == (flag in flags), line
     assert ("hypervisor steal" in line) == (steal is not None)
     assert _timing.is_loaded(2) == bool(flags)
+    assert _timing.is_loaded(2, steal=False) == ("LOADED" in flags)      # a set-up window's steal: not flagged
