@@ -285,6 +285,10 @@ PRODUCTS = [
     ("ragged slivers and panels", 37, 301, 45, False, False, False, True, True),
     ("into rows of a wider matrix", 40, 70, 50, False, True, True, False, True),
     ("one pass over k, written past the caches (non-temporal)", 1024, 32, 4128, False, True, False, False, True),
+    ("rows 2 KB apart: copied one sliver at a time (b's chunk in L2), ragged", 37, 512, 45, False, False, False, True,
+     True),
+    ("rows 4 KB apart, many panels: copied in blocks of slivers, ragged, into a wider matrix", 200, 1024, 2000, False,
+     False, True, True, True),
     ("too few rows: PyTorch's", 31, 64, 64, False, False, False, True, False),
     ("too few columns: PyTorch's", 64, 64, 15, True, False, False, False, False),
 ]
