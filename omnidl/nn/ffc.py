@@ -45,6 +45,7 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
+from . import inference, thin_layout, winograd
 from .padding import PaddingMode, make_conv2d
 from .unfold_conv import module_conv2d
 from .wconv import Activation, make_activation
@@ -127,6 +128,11 @@ class SpectralTransform(nn.Module):
         return module_conv2d(self.conv_out, x + self.fourier(x))
 
 
+#: ``False``: the spatial paths of an FFC in inference run as in training, through ``module_conv2d`` (benchmarks'
+#: in-process A/B of :meth:`FFC._forward_winograd`)
+WINOGRAD_INFERENCE = True
+
+
 def split_channels(channels: int, ratio_global: float) -> tuple[int, int]:
     """``(local, global)`` channel counts: ``global = int(channels * ratio_global)``."""
     if not 0.0 <= ratio_global <= 1.0:
@@ -189,11 +195,38 @@ class FFC(nn.Module):
 
     def forward(self, x: Tensor | tuple[Tensor | None, Tensor | None]) -> tuple[Tensor | None, Tensor | None]:
         x_l, x_g = self.split(x)
+        if self._winograd_inference(x_l, x_g):
+            return self._forward_winograd(x_l, x_g)
         y_l = _add(module_conv2d(self.conv_l2l, x_l) if self.conv_l2l is not None else None,
                    module_conv2d(self.conv_g2l, x_g) if self.conv_g2l is not None else None)
         y_g = _add(module_conv2d(self.conv_l2g, x_l) if self.conv_l2g is not None else None,
                    module_conv2d(self.conv_g2g, x_g) if self.conv_g2g is not None else None)
         return y_l, y_g
+
+
+    def _winograd_inference(self, x_l: Tensor | None, x_g: Tensor | None) -> bool:
+        """Whether the three spatial paths run as inference Winograd layers (:func:`_forward_winograd`): all
+        present, outside autograd (:func:`omnidl.nn.inference.inference_ready`), each one qualifying for
+        :func:`omnidl.nn.winograd.wrap_mode` on its input once in channels-last memory."""
+        convs = (self.conv_l2l, self.conv_g2l, self.conv_l2g)
+        if not WINOGRAD_INFERENCE or x_l is None or x_g is None or any(c is None for c in convs) or not inference.inference_ready(x_l, *convs):
+            return False
+        return all(winograd.wrap_mode(x, c, any_layout=True) is not None
+                   for x, c in ((x_l, self.conv_l2l), (x_g, self.conv_g2l), (x_l, self.conv_l2g)))
+
+    def _forward_winograd(self, x_l: Tensor, x_g: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` by the inference Winograd kernel (where :meth:`_winograd_inference`): both parts copied
+        into channels-last memory once, ``l2g(x_g)`` accumulated into ``l2l(x_l)`` in place, the local outputs
+        returned in the input's layout. In eval on 2 threads the 3x3 paths of FreDSNet's Fourier blocks at 128 and
+        256 channels took about half oneDNN's time (which re-lays the weight out on every call)."""
+        xl, xg = thin_layout.to_nhwc(x_l), thin_layout.to_nhwc(x_g)
+        y_l = inference.conv_bn_act(xl, self.conv_l2l, ready=True)
+        y_l = inference.conv_bn_act(xg, self.conv_g2l, residual=y_l, into_residual=True, ready=True)
+        l2g = inference.conv_bn_act(xl, self.conv_l2g, ready=True)
+        if x_l.stride(1) != 1:                       # NCHW input (a channel slice of it, too): NCHW outputs
+            y_l, l2g = thin_layout.to_nchw(y_l), thin_layout.to_nchw(l2g)
+        g2g = module_conv2d(self.conv_g2g, x_g) if self.conv_g2g is not None else None
+        return y_l, (l2g if g2g is None else l2g.add_(g2g))
 
 
 def _add(a: Tensor | None, b: Tensor | None) -> Tensor | None:

@@ -32,24 +32,25 @@ MIN_CHANNELS = 32
 ENABLED = True
 
 
-def wrap_mode(x: Tensor, conv: nn.Module) -> int | None:
+def wrap_mode(x: Tensor, conv: nn.Module, any_layout: bool = False) -> int | None:
     """``1`` (horizontal wrap) or ``0`` (zero padding) where :func:`forward` computes ``conv`` on ``x``
-    (channels-last float32 on the CPU), else ``None``."""
-    if not (ENABLED and native_3x3(x, conv, (1, 1))
+    (channels-last float32 on the CPU; ``any_layout``: on ``x`` once copied into channels-last memory), else
+    ``None``."""
+    if not (ENABLED and native_3x3(x, conv, (1, 1), any_layout)
             and conv.in_channels * conv.out_channels <= MAX_CHANNEL_PRODUCT
             and tiles(x) >= max(conv.in_channels, conv.out_channels) // 4 + 16):
         return None
     return padding_mode(conv)
 
 
-def native_3x3(x: Tensor, conv: nn.Module, stride: tuple[int, int]) -> bool:
+def native_3x3(x: Tensor, conv: nn.Module, stride: tuple[int, int], any_layout: bool = False) -> bool:
     """What the native Winograd kernels (this module's and :mod:`omnidl.nn.winograd_rows`) share: the native paths
     on, a 3x3 ``conv`` of ``stride`` without dilation or groups, :data:`MIN_CHANNELS` or more channels each way,
-    and ``x`` a 4-d channels-last float32 CPU map of 2 or more columns."""
+    and ``x`` a 4-d channels-last (or, with ``any_layout``, any) float32 CPU map of 2 or more columns."""
     return (fused.ENABLED and conv.kernel_size == (3, 3) and conv.stride == stride and conv.dilation == (1, 1)
             and conv.groups == 1 and x.dim() == 4 and MIN_CHANNELS <= min(conv.in_channels, conv.out_channels)
             and x.dtype == torch.float32 and x.device.type == "cpu"
-            and x.is_contiguous(memory_format=torch.channels_last) and x.shape[-1] >= 2)
+            and (any_layout or x.is_contiguous(memory_format=torch.channels_last)) and x.shape[-1] >= 2)
 
 
 def padding_mode(conv: nn.Module) -> int | None:

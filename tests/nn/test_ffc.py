@@ -169,3 +169,47 @@ def test_fourier_unit_under_bfloat16_autocast():
     with torch.autocast("cpu", dtype=torch.bfloat16):
         y = fu(torch.randn(1, 4, 6, 7))
     assert torch.isfinite(y.float()).all() and y.shape == (1, 4, 6, 7)
+
+
+# (name, channels, size, batch, padding, channels-last input, spectral, with autograd, Winograd runs): FFC.forward
+# in inference against the same FFC with the switch off (its training composition), and whether the native
+# Winograd kernel ran its three spatial paths
+WINOGRAD_INFERENCE = [
+    ("FreDSNet's block, zero padding", 64, (12, 20), 1, "zeros", False, True, False, True),
+    ("circular padding", 64, (12, 20), 1, "circular", False, True, False, True),
+    ("batch 2: channel slices are not contiguous", 64, (10, 14), 2, "zeros", False, True, False, True),
+    ("channels-last input: outputs stay channels-last", 64, (10, 14), 1, "zeros", True, True, False, True),
+    ("spatial g2g path (ablation X)", 64, (10, 14), 1, "zeros", False, False, False, True),
+    ("odd size", 64, (9, 15), 1, "zeros", False, True, False, True),
+    ("too few channels per part (16 < 32)", 32, (12, 20), 1, "zeros", False, True, False, False),
+    ("too few tiles for the width", 64, (2, 4), 1, "zeros", False, True, False, False),
+    ("under autograd: the training path", 64, (12, 20), 1, "zeros", False, True, True, False),
+]
+
+
+@pytest.mark.parametrize("name,channels,size,batch,padding,cl,spectral,grad,runs", WINOGRAD_INFERENCE,
+                         ids=[c[0] for c in WINOGRAD_INFERENCE])
+def test_ffc_inference_winograd_equals_the_composition(name, channels, size, batch, padding, cl, spectral, grad, runs,
+                                                         monkeypatch):
+    from omnidl.nn import ffc as ffc_mod, native, winograd
+    if native.library() is None or native.library().omnidl_wino_packed_floats(1, 1) == 0:
+        pytest.skip("no native Winograd kernel in this build")
+    torch.manual_seed(0)
+    m = FFC(channels, channels, 3, 0.5, 0.5, padding=padding, spectral=spectral).eval()
+    x = torch.randn(batch, channels, *size)
+    if cl:
+        x = x.contiguous(memory_format=torch.channels_last)
+    calls = []
+    real = winograd.forward
+    monkeypatch.setattr(winograd, "forward", lambda *a, **k: calls.append(1) or real(*a, **k))
+    with torch.set_grad_enabled(grad):
+        monkeypatch.setattr(ffc_mod, "WINOGRAD_INFERENCE", False)
+        ref = m(x)
+        assert not calls
+        monkeypatch.setattr(ffc_mod, "WINOGRAD_INFERENCE", True)
+        y = m(x)
+    assert len(calls) == (3 if runs else 0)
+    for a, b in zip(y, ref):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+        if runs:
+            assert a.is_contiguous(memory_format=torch.channels_last if cl else torch.contiguous_format)
