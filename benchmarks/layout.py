@@ -94,8 +94,8 @@ def main(argv=None) -> int:
               f"-> x{tb / t:.1f};  vs reference published {ref[world][0]:.2f}-{ref[world][1]:.2f} s -> "
               f"x{ref[world][0] / t:.0f}-x{ref[world][1] / t:.0f};  target <= {1000 * target[world]:.0f} ms: "
               f"{'met' if t <= target[world] else 'NOT met'}")
-        print(f"TARGET layout {world} (CPU time per layout): {1000 * t:.2f} ms = {t / tb:.2f}x the loop-RANSAC baseline "
-              f"({1000 * tb:.2f} ms) (target <= {1000 * target[world]:.0f} ms: "
+        print(f"TARGET layout {world} (CPU time per layout): {1000 * t:.2f} ms = {t / tb:.2f}x the loop-RANSAC "
+              f"baseline ({1000 * tb:.2f} ms) (target <= {1000 * target[world]:.0f} ms: "
               f"{'met' if t <= target[world] else 'MISSED'})")
     print(f"load average after: {os.getloadavg()}")
     print(load_line(1, "after"))
