@@ -35,6 +35,7 @@ from torch import Tensor
 
 from omnidl.nn.ffc import FourierBlock
 from omnidl.nn import tap_projection
+from omnidl.nn.capture import capturing
 from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_block, upsample_sum
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
@@ -94,7 +95,10 @@ class DecoderBlock(nn.Module):
         if self.skip_weight is not None:
             if skip is None:
                 raise ValueError("DecoderBlock built with a skip connection needs a skip tensor")
-            y = y + self.skip_weight * skip
+            if torch.is_grad_enabled() or capturing():
+                y = y + self.skip_weight * skip
+            else:       # y is this block's own new buffer: the weighted skip added in place, no two more full maps
+                y = y.addcmul_(self.skip_weight, skip)
         return self.fourier(y)
 
 

@@ -46,6 +46,7 @@ import torch.nn as nn
 from torch import Tensor
 
 from . import inference, thin_layout, winograd
+from .capture import capturing
 from .padding import PaddingMode, make_conv2d
 from .unfold_conv import module_conv2d
 from .wconv import Activation, make_activation
@@ -129,8 +130,8 @@ class SpectralTransform(nn.Module):
 
 
 #: ``False``: the spatial paths of an FFC in inference run as in training, through ``module_conv2d`` (benchmarks'
-#: in-process A/B of :meth:`FFC._forward_winograd`)
-WINOGRAD_INFERENCE = True
+#: in-process A/B of :meth:`FFC._forward_packed`)
+PACKED_INFERENCE = True
 
 
 def split_channels(channels: int, ratio_global: float) -> tuple[int, int]:
@@ -195,30 +196,32 @@ class FFC(nn.Module):
 
     def forward(self, x: Tensor | tuple[Tensor | None, Tensor | None]) -> tuple[Tensor | None, Tensor | None]:
         x_l, x_g = self.split(x)
-        if self._winograd_inference(x_l, x_g):
-            return self._forward_winograd(x_l, x_g)
+        if self._packed_inference(x_l, x_g):
+            return self._forward_packed(x_l, x_g)
         y_l = _add(module_conv2d(self.conv_l2l, x_l) if self.conv_l2l is not None else None,
                    module_conv2d(self.conv_g2l, x_g) if self.conv_g2l is not None else None)
         y_g = _add(module_conv2d(self.conv_l2g, x_l) if self.conv_l2g is not None else None,
                    module_conv2d(self.conv_g2g, x_g) if self.conv_g2g is not None else None)
         return y_l, y_g
 
-    def _winograd_inference(self, x_l: Tensor | None, x_g: Tensor | None) -> bool:
-        """Whether the three spatial paths run as inference Winograd layers (:func:`_forward_winograd`): all
-        present, outside autograd (:func:`omnidl.nn.inference.inference_ready`), each one qualifying for
-        :func:`omnidl.nn.winograd.wrap_mode` on its input once in channels-last memory."""
+    def _packed_inference(self, x_l: Tensor | None, x_g: Tensor | None) -> bool:
+        """Whether the three spatial paths run as inference layers with kept weights (:meth:`_forward_packed`): all
+        present, outside autograd (:func:`omnidl.nn.inference.inference_ready`), each one qualifying on its input
+        once in channels-last memory (:func:`_packed_layer`)."""
         convs = (self.conv_l2l, self.conv_g2l, self.conv_l2g)
-        if (not WINOGRAD_INFERENCE or x_l is None or x_g is None or any(c is None for c in convs)
+        if (not PACKED_INFERENCE or x_l is None or x_g is None or any(c is None for c in convs)
                 or not inference.inference_ready(x_l, *convs)):
             return False
-        return all(winograd.wrap_mode(x, c, any_layout=True) is not None
-                   for x, c in ((x_l, self.conv_l2l), (x_g, self.conv_g2l), (x_l, self.conv_l2g)))
+        return all(_packed_layer(x, c) for x, c in ((x_l, self.conv_l2l), (x_g, self.conv_g2l), (x_l, self.conv_l2g)))
 
-    def _forward_winograd(self, x_l: Tensor, x_g: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`forward` by the inference Winograd kernel (where :meth:`_winograd_inference`): both parts copied
-        into channels-last memory once, ``g2l(x_g)`` accumulated into ``l2l(x_l)`` in place, both outputs in NCHW
-        memory unless the input's channels are innermost. Before, ``F.conv2d`` had oneDNN re-lay out each weight on
-        every call: a FreDSNet-Std forward at 512x256 took 722 against 612 ms (2 threads, in-process A/B)."""
+    def _forward_packed(self, x_l: Tensor, x_g: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` by :func:`omnidl.nn.inference.conv_bn_act` (where :meth:`_packed_inference`): both parts
+        copied into channels-last memory once, ``g2l(x_g)`` accumulated into ``l2l(x_l)`` in place, both outputs in
+        NCHW memory unless the input's channels are innermost. Each layer runs the native Winograd kernel where it
+        qualifies, else oneDNN with the weight re-laid out once and kept. Before (stop 37), ``F.conv2d`` re-laid out
+        each weight on every call: a 1024-channel 3x3 layer on 16x32 (FreDSNet at 1024x512) took 91 against 53 ms,
+        and its 38 MB re-laid weight, larger than glibc's mapping threshold, page-faulted afresh on every call; 512
+        channels on 16x32 took 22 against 12 ms (2 threads)."""
         xl, xg = thin_layout.to_nhwc(x_l), thin_layout.to_nhwc(x_g)
         y_l = inference.conv_bn_act(xl, self.conv_l2l, ready=True)
         y_l = inference.conv_bn_act(xg, self.conv_g2l, residual=y_l, into_residual=True, ready=True)
@@ -227,6 +230,17 @@ class FFC(nn.Module):
             y_l, l2g = thin_layout.to_nchw(y_l), thin_layout.to_nchw(l2g)
         g2g = module_conv2d(self.conv_g2g, x_g) if self.conv_g2g is not None else None
         return y_l, (l2g if g2g is None else l2g.add_(g2g))
+
+
+def _packed_layer(x: Tensor, conv: nn.Module) -> bool:
+    """Whether :meth:`FFC._forward_packed` takes ``conv`` on ``x``: a layer the native Winograd kernel takes
+    (:func:`omnidl.nn.winograd.wrap_mode`), or one oneDNN runs as it is (:func:`omnidl.nn.inference.packable`) with
+    :data:`omnidl.nn.winograd.MIN_CHANNELS` or more channels each way (8 channels on 512x1024 ran 1.24x slower
+    packed)."""
+    if winograd.wrap_mode(x, conv, any_layout=True) is not None:
+        return True
+    return (inference.packable(conv) and min(conv.in_channels, conv.out_channels) >= winograd.MIN_CHANNELS
+            and x.dtype == torch.float32 and x.device.type == "cpu")
 
 
 def _add(a: Tensor | None, b: Tensor | None) -> Tensor | None:
@@ -258,6 +272,14 @@ class FourierBlock(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         x_l, x_g = self.ffc.split(x)
         y_l, y_g = self.ffc((x_l, x_g))
+        if y_l is not None and y_g is not None and self.residual and not torch.is_grad_enabled() and not capturing():
+            # without autograd each part's sum is written straight into its channels of the output: no concatenated
+            # copy (at 1024x512 FreDSNet's blocks on 128x256 and larger give 32 MB outputs, which glibc maps and
+            # page-faults afresh for every buffer)
+            out = torch.empty_like(x)
+            torch.add(self.act_l(self.norm_l(y_l)), x_l, out=out[:, :self.ffc.out_cl])
+            torch.add(self.act_g(self.norm_g(y_g)), x_g, out=out[:, self.ffc.out_cl:])
+            return out
         parts = []
         if y_l is not None:
             y_l = self.act_l(self.norm_l(y_l))

@@ -139,7 +139,7 @@ def inference_ready(x: Tensor, *modules: nn.Module | None) -> bool:
     return True
 
 
-def _packable(conv: nn.Module) -> bool:
+def packable(conv: nn.Module) -> bool:
     """A convolution oneDNN runs as it is: a plain ``nn.Conv2d`` (or a camera-less ``ProjectedConv2d``) with
     numeric zero padding, or a :class:`CircularConv2d`."""
     if not isinstance(conv, nn.Conv2d) or isinstance(conv.padding, str) or conv.padding_mode != "zeros":
@@ -364,7 +364,7 @@ def _fast(x: Tensor, conv: nn.Conv2d, bn: nn.Module | None, act: Activation, res
         return y
     if residual is None and (y := _winograd_rows(x, conv, entry, act)) is not None:
         return y
-    if _packable(conv) and x.is_contiguous(memory_format=torch.channels_last):
+    if packable(conv) and x.is_contiguous(memory_format=torch.channels_last):
         if isinstance(conv, CircularConv2d):
             return _wrapped(x, conv, entry, act, residual)
         return _pointwise(x, conv, entry, tuple(conv.padding), act, residual)

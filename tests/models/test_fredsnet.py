@@ -320,3 +320,22 @@ def test_fusion_head_block_floor_keeps_outputs(dtype, tol, monkeypatch):
     for floor in (8, 16):
         torch.testing.assert_close(outs[floor], outs[32], rtol=tol, atol=tol)
 
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_eval_without_autograd_equals_the_autograd_composition(channels_last):
+    """Without autograd the decoder adds its weighted skip in place and the Fourier blocks write their parts straight
+    into the output (no concatenated copy); with autograd they compose the tensors as in training: same outputs."""
+    torch.manual_seed(7)
+    m = FreDSNet(**SMALL, channels_last=channels_last).eval().double()
+    with torch.no_grad():
+        for i, blk in enumerate(m.decoder):
+            if blk.skip_weight is not None:
+                blk.skip_weight.fill_(0.5 + 0.25 * i)
+    x = torch.rand(1, 3, 32, 64, dtype=torch.float64)
+    with torch.no_grad():
+        a = m(x)
+    with torch.enable_grad():
+        b = m(x.clone().requires_grad_())
+    for k in a:
+        torch.testing.assert_close(a[k], b[k].detach(), rtol=1e-12, atol=1e-12)

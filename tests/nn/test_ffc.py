@@ -171,45 +171,82 @@ def test_fourier_unit_under_bfloat16_autocast():
     assert torch.isfinite(y.float()).all() and y.shape == (1, 4, 6, 7)
 
 
-# (name, channels, size, batch, padding, channels-last input, spectral, with autograd, Winograd runs): FFC.forward
-# in inference against the same FFC with the switch off (its training composition), and whether the native
-# Winograd kernel ran its three spatial paths
-WINOGRAD_INFERENCE = [
-    ("FreDSNet's block, zero padding", 64, (12, 20), 1, "zeros", False, True, False, True),
-    ("circular padding", 64, (12, 20), 1, "circular", False, True, False, True),
-    ("batch 2: channel slices are not contiguous", 64, (10, 14), 2, "zeros", False, True, False, True),
-    ("channels-last input: outputs stay channels-last", 64, (10, 14), 1, "zeros", True, True, False, True),
-    ("spatial g2g path (ablation X)", 64, (10, 14), 1, "zeros", False, False, False, True),
-    ("odd size", 64, (9, 15), 1, "zeros", False, True, False, True),
-    ("too few channels per part (16 < 32)", 32, (12, 20), 1, "zeros", False, True, False, False),
-    ("too few tiles for the width", 64, (2, 4), 1, "zeros", False, True, False, False),
-    ("under autograd: the training path", 64, (12, 20), 1, "zeros", False, True, True, False),
+# (name, channels, size, batch, padding, channels-last input, spectral, with autograd, dtype, kernel that runs the
+# three spatial paths: "wino" native Winograd, "onednn" oneDNN with the kept weight, None the training composition):
+# FFC.forward in inference against the same FFC with the switch off (its training composition)
+PACKED_INFERENCE = [
+    ("FreDSNet's block, zero padding", 64, (12, 20), 1, "zeros", False, True, False, torch.float32, "wino"),
+    ("circular padding", 64, (12, 20), 1, "circular", False, True, False, torch.float32, "wino"),
+    ("batch 2: channel slices are not contiguous", 64, (10, 14), 2, "zeros", False, True, False, torch.float32, "wino"),
+    ("channels-last input: outputs stay channels-last", 64, (10, 14), 1, "zeros", True, True, False, torch.float32,
+     "wino"),
+    ("spatial g2g path (ablation X)", 64, (10, 14), 1, "zeros", False, False, False, torch.float32, "wino"),
+    ("odd size", 64, (9, 15), 1, "zeros", False, True, False, torch.float32, "wino"),
+    ("too few tiles for Winograd: oneDNN", 64, (2, 4), 1, "zeros", False, True, False, torch.float32, "onednn"),
+    ("too few tiles, circular padding: oneDNN", 64, (3, 5), 1, "circular", False, True, False, torch.float32,
+     "onednn"),
+    ("too few tiles, batch 2, channels-last", 64, (2, 6), 2, "zeros", True, True, False, torch.float32, "onednn"),
+    ("too few channels per part (16 < 32)", 32, (12, 20), 1, "zeros", False, True, False, torch.float32, None),
+    ("under autograd: the training path", 64, (12, 20), 1, "zeros", False, True, True, torch.float32, None),
+    ("float64: the training path", 64, (12, 20), 1, "zeros", False, True, False, torch.float64, None),
 ]
 
 
-@pytest.mark.parametrize("name,channels,size,batch,padding,cl,spectral,grad,runs", WINOGRAD_INFERENCE,
-                         ids=[c[0] for c in WINOGRAD_INFERENCE])
-def test_ffc_inference_winograd_equals_the_composition(name, channels, size, batch, padding, cl, spectral, grad, runs,
-                                                         monkeypatch):
-    from omnidl.nn import ffc as ffc_mod, native, winograd
-    if native.library() is None or native.library().omnidl_wino_packed_floats(1, 1) == 0:
+@pytest.mark.parametrize("name,channels,size,batch,padding,cl,spectral,grad,dtype,runs", PACKED_INFERENCE,
+                         ids=[c[0] for c in PACKED_INFERENCE])
+def test_ffc_packed_inference_equals_the_composition(name, channels, size, batch, padding, cl, spectral, grad, dtype,
+                                                       runs, monkeypatch):
+    from omnidl.nn import ffc as ffc_mod, inference, native, winograd
+    if runs == "wino" and (native.library() is None or native.library().omnidl_wino_packed_floats(1, 1) == 0):
         pytest.skip("no native Winograd kernel in this build")
     torch.manual_seed(0)
-    m = FFC(channels, channels, 3, 0.5, 0.5, padding=padding, spectral=spectral).eval()
-    x = torch.randn(batch, channels, *size)
+    m = FFC(channels, channels, 3, 0.5, 0.5, padding=padding, spectral=spectral).eval().to(dtype)
+    x = torch.randn(batch, channels, *size, dtype=dtype)
     if cl:
         x = x.contiguous(memory_format=torch.channels_last)
     calls = []
-    real = winograd.forward
-    monkeypatch.setattr(winograd, "forward", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for mod, name_ in ((winograd, "forward"), (inference, "_pointwise"), (inference, "_wrapped")):
+        real = getattr(mod, name_)
+        monkeypatch.setattr(mod, name_, lambda *a, _r=real, _n=name_, **k: calls.append(_n) or _r(*a, **k))
     with torch.set_grad_enabled(grad):
-        monkeypatch.setattr(ffc_mod, "WINOGRAD_INFERENCE", False)
+        monkeypatch.setattr(ffc_mod, "PACKED_INFERENCE", False)
         ref = m(x)
         assert not calls
-        monkeypatch.setattr(ffc_mod, "WINOGRAD_INFERENCE", True)
+        monkeypatch.setattr(ffc_mod, "PACKED_INFERENCE", True)
         y = m(x)
-    assert len(calls) == (3 if runs else 0)
+    kernel = {"wino": "forward", "onednn": "_wrapped" if padding == "circular" else "_pointwise", None: None}[runs]
+    assert calls.count(kernel) == (3 if runs else 0) and (runs == "wino") == ("forward" in calls)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
     for a, b in zip(y, ref):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol)
         if runs:
             assert a.is_contiguous(memory_format=torch.channels_last if cl else torch.contiguous_format)
+
+
+# (name, channels, ratio, batch, channels-last input, dtype): FourierBlock without autograd writes each part's sum
+# straight into its channels of the output; it must equal the concatenating composition it takes with autograd
+DIRECT_OUTPUT = [
+    ("both parts, NCHW", 64, 0.5, 1, False, torch.float32),
+    ("both parts, channels-last", 64, 0.5, 2, True, torch.float32),
+    ("uneven split", 20, 0.25, 1, False, torch.float64),
+    ("no global part: the concatenation is skipped anyway", 16, 0.0, 1, False, torch.float64),
+]
+
+
+@pytest.mark.parametrize("name,channels,ratio,batch,cl,dtype", DIRECT_OUTPUT, ids=[c[0] for c in DIRECT_OUTPUT])
+def test_fourier_block_direct_output_equals_the_concatenation(name, channels, ratio, batch, cl, dtype):
+    torch.manual_seed(1)
+    fb = FourierBlock(channels, ratio=ratio).eval().to(dtype)
+    for m in fb.modules():                          # non-trivial running statistics and slopes
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5), m.running_var.uniform_(0.5, 2.0)
+    x = torch.randn(batch, channels, 8, 12, dtype=dtype)
+    if cl:
+        x = x.contiguous(memory_format=torch.channels_last)
+    with torch.enable_grad():
+        ref = fb(x.clone().requires_grad_())
+    with torch.no_grad():
+        y = fb(x)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(y, ref.detach(), rtol=tol, atol=tol)
+    assert y.is_contiguous(memory_format=torch.channels_last if cl else torch.contiguous_format)
