@@ -113,6 +113,26 @@ def load_line(threads: int, what: str = "") -> str:
     return f"# load average (1 min) {la:.2f}{' ' + what if what else ''}, own threads {threads}{shown}{flag}"
 
 
+#: glibc's allocator settings read from the environment (``mallopt(3)``), and the tunables variable
+ALLOCATOR_VARS = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_",
+                  "MALLOC_ARENA_MAX")
+
+
+def allocator_tag(environ: dict[str, str] | None = None) -> str:
+    """``""`` under glibc's default allocator, else `` [allocator: ...; the targets are judged on the default]``.
+    A process that keeps freed memory (``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=...``, a preloaded jemalloc or
+    tcmalloc) skips the page faults of freshly mapped large buffers, which glibc otherwise takes on every block
+    of more than 32 MB: whole-model times and the ratios between two models move with it (docs/fredsnet.md)."""
+    env = os.environ if environ is None else environ
+    parts = [f"{k}={env[k]}" for k in ALLOCATOR_VARS if env.get(k)]
+    if "malloc" in env.get("GLIBC_TUNABLES", ""):
+        parts.append(f"GLIBC_TUNABLES={env['GLIBC_TUNABLES']}")
+    preload = os.path.basename(env.get("LD_PRELOAD", "").split(":")[0].split(" ")[0])
+    if any(name in preload for name in ("jemalloc", "tcmalloc", "mimalloc")):
+        parts.append(f"LD_PRELOAD={preload}")
+    return f" [allocator: {' '.join(parts)}; the targets are judged on the default]" if parts else ""
+
+
 def host_line() -> str:
     """``# host: CPU model, CPUs, L2 per core, omnidl's native kernel``: figures differ between hosts (an AVX-512
     host runs oneDNN's convolutions about twice as fast as an AVX2 one), so each run names its own."""
@@ -178,4 +198,4 @@ def target_line(name: str, figure: str, ratio_value: float, baseline: str, targe
         s += f" (target {target}: {'met' if ok else 'MISSED'})"
     if loaded:
         s += " [taken under load]"
-    return s
+    return s + allocator_tag()

@@ -33,7 +33,7 @@ import torchvision
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._timing import host_line, load_line  # noqa: E402
+from benchmarks._timing import allocator_tag, host_line, load_line  # noqa: E402
 from omnidl.cameras import Equirectangular  # noqa: E402
 from omnidl.models.fredsnet import FreDSNet, count_parameters  # noqa: E402
 
@@ -155,11 +155,11 @@ def main(argv: list[str] | None = None) -> dict:
     print(load_line(a.threads, "at end"))
     print(f"TARGET FreDSNet-std forward 512x256: {res['std_fwd_512x256']:.3f} s = "
           f"{res['std_fwd_512x256_ratio_resnet50']:.2f}x resnet50's forward "
-          f"(target <= 0.8 s: {'met' if res['std_fwd_target_met'] else 'MISSED'})")
+          f"(target <= 0.8 s: {'met' if res['std_fwd_target_met'] else 'MISSED'})" + allocator_tag())
     if "equi_over_std_fwd" in res:
         r = res["equi_over_std_fwd"]
         print(f"TARGET FreDSNet-equi forward 512x256: {res['equi_fwd_512x256']:.3f} s = {r:.2f}x FreDSNet-std's "
-              f"(target <= 1.3x: {'met' if r <= 1.3 else 'MISSED'})")
+              f"(target <= 1.3x: {'met' if r <= 1.3 else 'MISSED'})" + allocator_tag())
     if a.json:
         from omnidl.utils.io import atomic_write_json
         atomic_write_json(a.json, res)
@@ -195,7 +195,7 @@ def scaling(a: argparse.Namespace) -> dict:
     print(f"forward 512x256 {res['fwd_512x256_s']:.3f} s, 1024x512 {res['fwd_1024x512_s']:.3f} s (medians, wall)")
     print(f"TARGET FreDSNet forward growth 512x256 -> 1024x512 (x4 pixels): x{g_wall:.2f} wall, x{g_cpu:.2f} CPU "
           f"(target <= x4.2: {'met' if g_wall <= 4.2 else 'MISSED'}); load {l0:.2f}-{res['load1'][1]:.2f}"
-          + (" [taken under load]" if max(res["load1"]) > a.threads else ""))
+          + (" [taken under load]" if max(res["load1"]) > a.threads else "") + allocator_tag())
     print(load_line(a.threads, "at end"))
     if a.json:
         from omnidl.utils.io import atomic_write_json

@@ -46,7 +46,7 @@ import torchvision
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._timing import host_line, is_loaded, load1, load_line  # noqa: E402
+from benchmarks._timing import allocator_tag, host_line, is_loaded, load1, load_line  # noqa: E402
 
 TARGETS = {"horizonnet": 0.7, "fredsnet": 0.6}
 FILES = {"horizonnet": "model.py", "fredsnet": "FreDSNet_model.py"}
@@ -134,7 +134,7 @@ def _report(which: str, what: str, times: dict[str, list[tuple[float, float]]], 
     print(f"TARGET {which} {what}: omnidl {res['omnidl_s']:.3f} s vs public {res['public_s']:.3f} s = {r:.2f}x "
           f"public [{min(ratios):.2f}-{max(ratios):.2f}], CPU-time ratio {cpu_ratio:.2f}x (target <= {target}x: "
           f"{'met' if res['met'] else 'MISSED'}); load {loads[0]:.2f}-{loads[1]:.2f}"
-          + (" [taken under load]" if loaded else ""), flush=True)
+          + (" [taken under load]" if loaded else "") + allocator_tag(), flush=True)
     return res
 
 

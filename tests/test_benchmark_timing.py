@@ -75,3 +75,25 @@ def test_load_line_and_is_loaded_flag_steal(monkeypatch, steal, load, flags):
     assert ("hypervisor steal" in line) == (steal is not None)
     assert _timing.is_loaded(2) == bool(flags)
     assert _timing.is_loaded(2, steal=False) == ("LOADED" in flags)      # a set-up window's steal: not flagged
+
+
+# (environment, words the tag must hold; () for no tag): figures taken with glibc keeping freed memory, or with
+# another allocator preloaded, say so on their TARGET line
+ALLOCATORS = [
+    ({}, ()),
+    ({"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "4000000000"},
+     ("MALLOC_MMAP_MAX_=0", "MALLOC_TRIM_THRESHOLD_=4000000000", "judged on the default")),
+    ({"MALLOC_MMAP_MAX_": ""}, ()),                                       # set but empty: glibc ignores it
+    ({"GLIBC_TUNABLES": "glibc.malloc.mmap_max=0"}, ("GLIBC_TUNABLES=glibc.malloc.mmap_max=0",)),
+    ({"GLIBC_TUNABLES": "glibc.pthread.rseq=0"}, ()),                     # a tunable outside malloc
+    ({"LD_PRELOAD": "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2"}, ("LD_PRELOAD=libjemalloc.so.2",)),
+    ({"LD_PRELOAD": "/opt/lib/libfaketime.so"}, ()),
+]
+
+
+@pytest.mark.parametrize("environ, words", ALLOCATORS)
+def test_allocator_tag(environ, words):
+    tag = _timing.allocator_tag(environ)
+    assert (tag == "") == (not words), tag
+    for w in words:
+        assert w in tag, tag
