@@ -321,7 +321,6 @@ def test_fusion_head_block_floor_keeps_outputs(dtype, tol, monkeypatch):
         torch.testing.assert_close(outs[floor], outs[32], rtol=tol, atol=tol)
 
 
-
 @pytest.mark.parametrize("channels_last", [False, True])
 def test_eval_without_autograd_equals_the_autograd_composition(channels_last):
     """Without autograd the decoder adds its weighted skip in place and the Fourier blocks write their parts straight

@@ -237,9 +237,10 @@ DIRECT_OUTPUT = [
 def test_fourier_block_direct_output_equals_the_concatenation(name, channels, ratio, batch, cl, dtype):
     torch.manual_seed(1)
     fb = FourierBlock(channels, ratio=ratio).eval().to(dtype)
-    for m in fb.modules():                          # non-trivial running statistics and slopes
+    for m in fb.modules():                          # non-trivial running statistics
         if isinstance(m, nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.5, 0.5), m.running_var.uniform_(0.5, 2.0)
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
     x = torch.randn(batch, channels, 8, 12, dtype=dtype)
     if cl:
         x = x.contiguous(memory_format=torch.channels_last)
