@@ -26,7 +26,7 @@ Same compute as the public model: 100.5 GFLOP (conv/matmul) at 512x256 with ResN
 """
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 import torch.nn as nn
@@ -36,7 +36,8 @@ from torch import Tensor
 from omnidl.nn.ffc import FourierBlock
 from omnidl.nn import tap_projection
 from omnidl.nn.capture import capturing
-from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, rows_per_block, upsample_sum
+from omnidl.nn import fusion
+from omnidl.nn.fusion import RowMap, UpsampleSum, blocked_conv, can_block, rows_per_block, upsample_sum
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
 from omnidl.nn.conv_switch import conv_choice
@@ -142,11 +143,26 @@ class FusionHead(nn.Module):
             if wrap:                                    # a thin output conv: the sum written wrapped, channels-last
                 return self.out.act(self.out.norm(conv.conv_wrapped(upsample_sum(ups, weights, (H, W), wrap=wrap))))
             return self.out(upsample_sum(ups, weights, (H, W)))
-        mediated = [med.row_source(d) if not self.training and d.shape[-2:] == (H, W) else med(d)
-                    for med, d in zip(self.mediators, maps)]
+        mediated = [self._mediated(med, d, (H, W), first=i == 0)
+                    for i, (med, d) in enumerate(zip(self.mediators, maps))]
         fused = UpsampleSum(mediated, weights, size=(H, W))      # sum_i w_i up(m_i), by row blocks
         y = blocked_conv(self.out.conv, fused.rows, H, rows_per_block(B, self.out.conv.in_channels, W))
         return self.out.act(self.out.norm(y))
+
+    def _mediated(self, mediator: WConv, d: Tensor, size: tuple[int, int], first: bool) -> Tensor | Callable | RowMap:
+        """``mediator(d)`` for :class:`UpsampleSum`; in eval mode as rows computed per block (``WConv.row_source``)
+        where the map is full-size or larger than two blocks (the first map stays a tensor: it sets the sum's
+        layout). At 1024x512 the semantic branch's half-size map is 128 x 256 x 512, 64 MB: as one buffer it took
+        55-85 ms in its last 1x1 stage, most of it page faults (glibc maps such a buffer afresh on each call)."""
+        if self.training:
+            return mediator(d)
+        h, w = d.shape[-2:]
+        if (h, w) == size:
+            return mediator.row_source(d)
+        nbytes = d.shape[0] * mediator.expand.conv.out_channels * h * w * d.element_size()
+        if first or nbytes <= 2 * fusion.BLOCK_BYTES:
+            return mediator(d)
+        return RowMap(mediator.row_source(d), h, w)
 
     def _taps(self, mediator: WConv, d: Tensor) -> Tensor:
         """``project(out.conv, mediator(d))``; in eval mode without autograd by row blocks, so that the wide

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import torch
 import torch.nn as nn
@@ -31,6 +31,16 @@ from .padding import CircularConv2d, pad_panorama, wrapped_conv2d
 
 #: ``f(a, b) -> (B, C, b - a, W)``: rows ``a:b`` of a full-size map, computed on demand
 RowSource = Callable[[int, int], Tensor]
+
+
+class RowMap(NamedTuple):
+    """A map of any size given by its rows: ``rows(a, b) -> (B, C, b - a, width)`` for ``0 <= a < b <= height``.
+
+    :class:`UpsampleSum` then reads only the source rows each output block needs, so that a map that is itself
+    large (FreDSNet's 128-channel branch map at half the output size, 64 MB at 1024x512) never exists at once."""
+    rows: RowSource
+    height: int
+    width: int
 
 #: bytes of one row block of the full-resolution sum (fits in a core's L2 cache on current CPUs)
 BLOCK_BYTES = 4 << 20
@@ -74,8 +84,10 @@ class UpsampleSum:
     Args:
         maps: ``(B, C, h_i, w_i)`` tensors with the same ``B, C``, dtype and device (contiguous or
             channels-last; blocks come back in the memory format of the first one). A full-size map may
-            instead be a *row source*, a callable ``f(a, b) -> (B, C, b - a, W)`` giving its rows ``a:b``,
-            so that it too is only ever materialised block by block (``size`` is then required).
+            instead be a *row source*, a callable ``f(a, b) -> (B, C, b - a, W)`` giving its rows ``a:b``, and a
+            map of any size a :class:`RowMap`, so that it too is only ever materialised block by block (``size`` is
+            then required; at least one map must be a tensor). Adjacent blocks of an up-sampled row map share a
+            source row or two, which are computed for each.
         weights: one per map: a scalar tensor (``()`` or ``(1,)``, may require grad), a number, or
             ``None`` for 1.
         size: ``(H, W)``; default the size of the largest map.
@@ -83,7 +95,7 @@ class UpsampleSum:
     ``rows(a, b)`` returns ``S[:, :, a:b]`` as ``(B, C, b - a, W)``; ``full()`` is ``rows(0, H)``.
     """
 
-    def __init__(self, maps: Sequence[Tensor | RowSource], weights: Sequence[Tensor | float | None],
+    def __init__(self, maps: Sequence[Tensor | RowSource | RowMap], weights: Sequence[Tensor | float | None],
                  size: tuple[int, int] | None = None) -> None:
         if not maps or len(maps) != len(weights):
             raise ValueError(f"UpsampleSum: need one weight per map, got {len(maps)} maps, {len(weights)} weights")
@@ -97,9 +109,18 @@ class UpsampleSum:
         H, W = size if size is not None else max((tuple(m.shape[-2:]) for m in maps), key=lambda s: s[0] * s[1])
         self.shape = (B, C, int(H), int(W))
         self.channels_last = tensors[0].is_contiguous(memory_format=torch.channels_last) and C > 1
+        self.flat_batch = B if self.channels_last else B * C       # leading size of the flat maps (:meth:`_flat`)
         # (rows (N, h, L) or a row source, matrix (H, h) or None at full size, weight, width)
         self.terms: list[tuple] = []
         for m, w in zip(maps, weights):
+            if isinstance(m, RowMap):                     # rows of a map of any size, evaluated per block
+                if m.height < 1 or m.width < 1:
+                    raise ValueError(f"UpsampleSum: a row map needs a size of at least 1x1, got "
+                                     f"{m.height}x{m.width}")
+                A = None if m.height == H else interpolation_matrix(H, m.height, dtype=tensors[0].dtype,
+                                                                    device=tensors[0].device)
+                self.terms.append((m.rows, A, w, m.width))
+                continue
             if not isinstance(m, Tensor):                 # full-size row source, evaluated per block
                 self.terms.append((m, None, w, W))
                 continue
@@ -134,13 +155,16 @@ class UpsampleSum:
             fresh = False                                 # term is a buffer of this call's own
             if A is None:                                 # a full-size map: its rows
                 term = _rows_of(flat, a, b) if isinstance(flat, Tensor) else self._flat(flat(a, b))
+                if width != W:
+                    term, w, fresh = self._flat(F.interpolate(self._unflat(term), size=(b - a, W), mode="bilinear",
+                                                              align_corners=True)), w, True
             else:                                         # height pass on the rows it needs
                 block = A[a:b]
                 used = block.any(0).nonzero()
                 lo, hi = int(used[0]), int(used[-1]) + 1
                 block = block[:, lo:hi] if w is None else block[:, lo:hi] * w
-                block = block.expand(flat.shape[0], -1, -1)
-                src = _rows_of(flat, lo, hi)
+                block = block.expand(self.flat_batch, -1, -1)
+                src = _rows_of(flat, lo, hi) if isinstance(flat, Tensor) else self._flat(flat(lo, hi))
                 if width == W:
                     acc = torch.bmm(block, src) if acc is None else acc.baddbmm_(block, src)
                     continue
@@ -360,4 +384,5 @@ def rows_per_block(batch: int, channels: int, width: int, element_size: int = 4)
     return max(MIN_BLOCK_ROWS, BLOCK_BYTES // max(1, batch * channels * width * element_size))
 
 
-__all__ = ["interpolation_matrix", "UpsampleSum", "upsample_sum", "can_block", "blocked_conv", "rows_per_block"]
+__all__ = ["interpolation_matrix", "RowMap", "UpsampleSum", "upsample_sum", "can_block", "blocked_conv",
+           "rows_per_block"]

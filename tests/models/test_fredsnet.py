@@ -322,6 +322,37 @@ def test_fusion_head_block_floor_keeps_outputs(dtype, tol, monkeypatch):
 
 
 @pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_fusion_head_row_maps_equal_the_literal_formula(channels_last, dtype, tol, monkeypatch):
+    """In eval without autograd the head gives UpsampleSum its larger lower-resolution maps by their rows
+    (fusion.RowMap; with one-byte blocks every map but the first) and the full-size one as a row source: the literal
+    formula's outputs."""
+    import omnidl.models.fredsnet as fredsnet
+    import omnidl.nn.fusion as fusion
+    monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)
+    kinds = []
+    real = fredsnet.UpsampleSum
+    monkeypatch.setattr(fredsnet, "UpsampleSum", lambda maps, *a, **k: kinds.append(
+        [type(m).__name__ for m in maps]) or real(maps, *a, **k))
+    torch.manual_seed(8)
+    head = fredsnet.FusionHead([8, 6, 4, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
+                               wconv_kwargs={}).to(dtype).eval()
+    with torch.no_grad():
+        head.branch_weights.copy_(torch.tensor([-0.7, 1.3, 0.4]))
+    fmt = torch.channels_last if channels_last else torch.contiguous_format
+    head = head.to(memory_format=fmt)
+    maps = [torch.randn(2, c, h, 2 * h, dtype=dtype).contiguous(memory_format=fmt)
+            for c, h in ((8, 3), (6, 6), (4, 12), (4, 24))]
+    with torch.no_grad():
+        got = head(maps)
+        up = [F.interpolate(med(d), size=(24, 48), mode="bilinear", align_corners=True)
+              for med, d in zip(head.mediators, maps)]
+        expect = head.out(up[0] + sum(w * u for w, u in zip(head.branch_weights, up[1:])))
+    assert kinds == [["Tensor", "RowMap", "RowMap", "function"]]
+    torch.testing.assert_close(got, expect, rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
 def test_eval_without_autograd_equals_the_autograd_composition(channels_last):
     """Without autograd the decoder adds its weighted skip in place and the Fourier blocks write their parts straight
     into the output (no concatenated copy); with autograd they compose the tensors as in training: same outputs."""

@@ -6,7 +6,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 import omnidl.nn.fusion as fusion
-from omnidl.nn.fusion import UpsampleSum, blocked_conv, can_block, interpolation_matrix, upsample_sum
+from omnidl.nn.fusion import RowMap, UpsampleSum, blocked_conv, can_block, interpolation_matrix, upsample_sum
 from omnidl.nn import native
 from omnidl.nn.padding import CircularConv2d, pad_panorama
 
@@ -65,6 +65,52 @@ def test_rows_and_row_sources():
         UpsampleSum(ms, [None])
     with pytest.raises(ValueError, match="same B, C"):
         UpsampleSum([ms[0], torch.randn(2, 3, 4, 4)], [None, None])
+
+
+def _row_map(m, reads):
+    def rows(a, b):
+        assert 0 <= a < b <= m.shape[-2]
+        reads.append(b - a)
+        return m[:, :, a:b]
+    return RowMap(rows, *m.shape[-2:])
+
+
+# (name, sizes of the maps, which of them are row maps, output size)
+ROW_MAPS = [
+    ("half-size map", SIZES, (2,), (16, 32)),
+    ("every map but the first", SIZES, (1, 2, 3), (16, 32)),
+    ("full-height narrow map", [(2, 4), (16, 8)], (1,), (16, 32)),
+    ("odd factors", [(3, 5), (7, 11), (13, 29)], (1, 2), (13, 29)),
+    ("one-row map", [(2, 4), (1, 9)], (1,), (6, 12)),
+]
+
+
+@pytest.mark.parametrize("channels_last", [True, False])
+@pytest.mark.parametrize("name,sizes,as_rows,size", ROW_MAPS, ids=[c[0] for c in ROW_MAPS])
+def test_row_maps_of_any_size_equal_the_maps(name, sizes, as_rows, size, channels_last):
+    """A map given by its rows (RowMap) sums as the map itself, block by block, reading only rows near the block's
+    source rows."""
+    torch.manual_seed(3)
+    ms = [m.detach() for m in _maps(channels_last, sizes)]
+    ws = [None, torch.tensor([0.5], dtype=torch.float64), 2.0][:len(ms) - 1] + [None]
+    reads = []
+    s = UpsampleSum([_row_map(m, reads) if i in as_rows else m for i, m in enumerate(ms)], ws, size=size)
+    ref = _literal(ms, ws, size)
+    torch.testing.assert_close(s.full(), ref, rtol=1e-12, atol=1e-12)
+    H = size[0]
+    for a, b in [(0, 1), (0, H // 2), (H // 3, H - 1), (H - 1, H)]:
+        reads.clear()
+        torch.testing.assert_close(s.rows(a, b), ref[:, :, a:b], rtol=1e-12, atol=1e-12)
+        for i, n in zip(as_rows, reads):        # rows a..b-1 of the output read at most (b - a) * h / H + 2 rows
+            assert n <= (b - a) * sizes[i][0] / H + 2
+
+
+def test_row_map_checks():
+    m = torch.randn(1, 2, 4, 4)
+    with pytest.raises(ValueError, match="at least 1x1"):
+        UpsampleSum([m, RowMap(lambda a, b: m[:, :, a:b], 0, 4)], [None, None], size=(8, 8))
+    with pytest.raises(ValueError, match="at least one tensor map"):
+        UpsampleSum([RowMap(lambda a, b: m[:, :, a:b], 4, 4)], [None], size=(8, 8))
 
 
 def test_full_height_narrow_map():
