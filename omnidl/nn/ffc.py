@@ -45,7 +45,7 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from . import inference, thin_layout, winograd
+from . import epilogue, inference, thin_layout, winograd
 from .capture import capturing
 from .padding import PaddingMode, make_conv2d
 from .unfold_conv import module_conv2d
@@ -277,8 +277,12 @@ class FourierBlock(nn.Module):
             # copy (at 1024x512 FreDSNet's blocks on 128x256 and larger give 32 MB outputs, which glibc maps and
             # page-faults afresh for every buffer)
             out = torch.empty_like(x)
-            torch.add(self.act_l(self.norm_l(y_l)), x_l, out=out[:, :self.ffc.out_cl])
-            torch.add(self.act_g(self.norm_g(y_g)), x_g, out=out[:, self.ffc.out_cl:])
+            cl = self.ffc.out_cl
+            for y, res, norm, act, part in ((y_l, x_l, self.norm_l, self.act_l, out[:, :cl]),
+                                            (y_g, x_g, self.norm_g, self.act_g, out[:, cl:])):
+                # BatchNorm, activation and residual in one native pass where it applies (omnidl.nn.epilogue)
+                if epilogue.affine_act(y, act, norm, res, part) is None:
+                    torch.add(act(norm(y)), res, out=part)
             return out
         parts = []
         if y_l is not None:

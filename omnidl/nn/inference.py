@@ -95,11 +95,11 @@ def fold_batchnorm(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm2d) -> t
 
     ``conv(x, *fold_batchnorm(w, b, bn))`` equals ``bn(conv(x, w, b))`` in eval mode. ``weight (Cout, ...)``,
     ``bias (Cout,)`` or ``None``; differentiable in every input."""
-    scale, folded = _bn_scale_shift(bias, bn)
+    scale, folded = bn_scale_shift(bias, bn)
     return weight * scale.reshape(-1, *([1] * (weight.dim() - 1))), folded
 
 
-def _bn_scale_shift(bias: Tensor | None, bn: nn.BatchNorm2d) -> tuple[Tensor, Tensor]:
+def bn_scale_shift(bias: Tensor | None, bn: nn.BatchNorm2d) -> tuple[Tensor, Tensor]:
     """``(s, (bias - mean) * s + beta)`` of :func:`fold_batchnorm` (the weight's per-channel scale, the bias)."""
     scale = torch.rsqrt(bn.running_var + bn.eps)
     if bn.weight is not None:
@@ -170,7 +170,7 @@ def _entry(conv: nn.Module, bn: nn.Module | None) -> _Entry:
     hit = _CACHE.get(conv)                        # a read needs no lock (the GIL); writes take it
     if hit is None or hit.key != key or hit.bn is not bn:
         with torch.no_grad():
-            b = conv.bias if bn is None else _bn_scale_shift(conv.bias, bn)[1]
+            b = conv.bias if bn is None else bn_scale_shift(conv.bias, bn)[1]
         hit = _Entry(key, conv, bn, None if b is None else b.detach().contiguous())
         with _LOCK:
             _CACHE[conv] = hit

@@ -181,6 +181,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_prelu_backward.restype = i
     lib.omnidl_prelu_backward_cl.argtypes = [p, p, p, i, n, n, n, p, p, i]
     lib.omnidl_prelu_backward_cl.restype = i
+    lib.omnidl_affine_prelu_add.argtypes = [p, n, n, n, p, n, n, n, p, n, n, n, n, n, n, p, p, p, i]
+    lib.omnidl_affine_prelu_add.restype = i
     lib.omnidl_upsample_adjoint.argtypes = [p, n, n, n, n, n, p, p, p, p, p, p, p, i]
     lib.omnidl_upsample_adjoint.restype = i
     lib.omnidl_upsample_sum.argtypes = [p, n, p, p, p, n, n, n, n, p, p, p, p, p, p, i, n, n, p, i]

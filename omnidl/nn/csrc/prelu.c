@@ -109,3 +109,77 @@ int omnidl_prelu_backward_cl(const float *x, const float *g, const float *a, int
     (void)nthreads;
     return 0;
 }
+
+/* Inference epilogue of a convolution: out = prelu(y * s + t) + r, per channel c (slope a[c]; s, t: a folded
+ * BatchNorm, ones and zeros without one; r optional). Each map is (B, C, N) addressed by its own strides in
+ * elements (batch, channel, position), so channel slices of a larger map are read and written where they lie;
+ * out may be y itself (in place: every element is read before it is written, by the same thread).
+ * Two layouts: channels innermost (every channel stride 1: the positions are split across the threads and each
+ * runs its channels as one vector loop) or positions innermost (every position stride 1: the (b, c) planes are
+ * split). Returns 0, or 1 for any other layout (the caller composes the modules instead). */
+int omnidl_affine_prelu_add(const float *y, int64_t ysb, int64_t ysc, int64_t ysn, const float *r, int64_t rsb,
+                            int64_t rsc, int64_t rsn, float *out, int64_t osb, int64_t osc, int64_t osn, int64_t B,
+                            int64_t C, int64_t N, const float *s, const float *t, const float *a, int nthreads) {
+    if (ysc == 1 && osc == 1 && (!r || rsc == 1)) {
+        const int64_t rows = B * N;
+#ifdef _OPENMP
+#pragma omp parallel num_threads(nthreads)
+#endif
+        {
+            int th = 0, nt = 1;
+#ifdef _OPENMP
+            th = omp_get_thread_num();
+            nt = omp_get_num_threads();
+#endif
+            const int64_t q0 = rows * th / nt, q1 = rows * (th + 1) / nt;
+            int64_t b = q0 / N, n = q0 % N;   /* this thread's rows q0 .. q1-1, walked as (b, n) */
+            for (int64_t q = q0; q < q1; ++q) {
+                const float *yq = y + b * ysb + n * ysn;
+                float *oq = out + b * osb + n * osn;
+                if (r) {
+                    const float *rq = r + b * rsb + n * rsn;
+                    for (int64_t c = 0; c < C; ++c) {
+                        const float v = yq[c] * s[c] + t[c];
+                        oq[c] = (v > 0.f ? v : a[c] * v) + rq[c];
+                    }
+                } else {
+                    for (int64_t c = 0; c < C; ++c) {
+                        const float v = yq[c] * s[c] + t[c];
+                        oq[c] = v > 0.f ? v : a[c] * v;
+                    }
+                }
+                if (++n == N) {
+                    n = 0;
+                    ++b;
+                }
+            }
+        }
+    } else if (ysn == 1 && osn == 1 && (!r || rsn == 1)) {
+        const int64_t planes = B * C;
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+#endif
+        for (int64_t q = 0; q < planes; ++q) {
+            const int64_t b = q / C, c = q % C;
+            const float sc = s[c], tc = t[c], ac = a[c];
+            const float *yq = y + b * ysb + c * ysc;
+            float *oq = out + b * osb + c * osc;
+            if (r) {
+                const float *rq = r + b * rsb + c * rsc;
+                for (int64_t n = 0; n < N; ++n) {
+                    const float v = yq[n] * sc + tc;
+                    oq[n] = (v > 0.f ? v : ac * v) + rq[n];
+                }
+            } else {
+                for (int64_t n = 0; n < N; ++n) {
+                    const float v = yq[n] * sc + tc;
+                    oq[n] = v > 0.f ? v : ac * v;
+                }
+            }
+        }
+    } else {
+        return 1;
+    }
+    (void)nthreads;
+    return 0;
+}
