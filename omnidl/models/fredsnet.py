@@ -71,8 +71,9 @@ class EncoderBlock(nn.Module):
         self.downscale = downscale
         self.conv = WConv(channels, out_channels, dropout=dropout, **wconv_kwargs)
 
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        f = self.fourier(x)
+    def forward(self, x: Tensor, overwrite: bool = False) -> tuple[Tensor, Tensor]:
+        """``overwrite``: the caller no longer needs ``x`` (see :meth:`FourierBlock.forward`)."""
+        f = self.fourier(x, overwrite=overwrite)
         # bilinear x0.5 with align_corners=False on even sizes == 2x2 average pooling
         y = F.avg_pool2d(f, 2) if self.downscale else f
         return f, self.conv(y)
@@ -100,7 +101,7 @@ class DecoderBlock(nn.Module):
                 y = y + self.skip_weight * skip
             else:       # y is this block's own new buffer: the weighted skip added in place, no two more full maps
                 y = y.addcmul_(self.skip_weight, skip)
-        return self.fourier(y)
+        return self.fourier(y, overwrite=True)       # y is this block's own map
 
 
 class FusionHead(nn.Module):
@@ -285,7 +286,7 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
         skips = []
         flow = feats[0]
         for i, block in enumerate(self.encoder):
-            f, flow = block(flow)
+            f, flow = block(flow, overwrite=True)   # flow: a backbone output or this loop's own sum, not needed again
             skips.append(f)
             if i < 3:
                 flow = flow + feats[i + 1]

@@ -251,3 +251,29 @@ def test_fourier_block_direct_output_equals_the_concatenation(name, channels, ra
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     torch.testing.assert_close(y, ref.detach(), rtol=tol, atol=tol)
     assert y.is_contiguous(memory_format=torch.channels_last if cl else torch.contiguous_format)
+
+
+@pytest.mark.parametrize("name,channels,ratio,batch,cl,dtype", DIRECT_OUTPUT, ids=[c[0] for c in DIRECT_OUTPUT])
+def test_fourier_block_overwrite_writes_the_output_over_its_input(name, channels, ratio, batch, cl, dtype):
+    """``overwrite=True`` (the caller no longer needs x): without autograd the same output, written over x where the
+    block writes its parts directly (both parts present); with autograd x is left as it is."""
+    torch.manual_seed(2)
+    fb = FourierBlock(channels, ratio=ratio).eval().to(dtype)
+    for m in fb.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+    x = torch.randn(batch, channels, 8, 12, dtype=dtype)
+    if cl:
+        x = x.contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        ref = fb(x)
+    kept = x.clone()
+    with torch.enable_grad():
+        fb(x, overwrite=True)
+    assert torch.equal(x, kept)                     # autograd: overwrite is not taken
+    with torch.no_grad():
+        y = fb(x, overwrite=True)
+    assert (y.data_ptr() == x.data_ptr()) == (0 < ratio < 1)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(y, ref, rtol=tol, atol=tol)
