@@ -122,9 +122,12 @@ def allocator_tag(environ: dict[str, str] | None = None) -> str:
     """``""`` under glibc's default allocator, else `` [allocator: ...; the targets are judged on the default]``.
     A process that keeps freed memory (``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=...``, a preloaded jemalloc or
     tcmalloc) skips the page faults of freshly mapped large buffers, which glibc otherwise takes on every block
-    of more than 32 MB: whole-model times and the ratios between two models move with it (docs/fredsnet.md)."""
+    of more than 32 MB, and PyTorch's ``THP_MEM_ALLOC_ENABLE=1`` takes one fault per 2 MB huge page instead of
+    one per 4 kB page: whole-model times and the ratios between two models move with it (docs/fredsnet.md)."""
     env = os.environ if environ is None else environ
     parts = [f"{k}={env[k]}" for k in ALLOCATOR_VARS if env.get(k)]
+    if env.get("THP_MEM_ALLOC_ENABLE", "").strip() not in ("", "0"):       # PyTorch's own: huge pages for >= 2 MB
+        parts.append(f"THP_MEM_ALLOC_ENABLE={env['THP_MEM_ALLOC_ENABLE']}")
     if "malloc" in env.get("GLIBC_TUNABLES", ""):
         parts.append(f"GLIBC_TUNABLES={env['GLIBC_TUNABLES']}")
     preload = os.path.basename(env.get("LD_PRELOAD", "").split(":")[0].split(" ")[0])

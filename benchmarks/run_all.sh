@@ -43,6 +43,9 @@ run public_fdsnet  python benchmarks/public_models.py fredsnet --reps 5
 KEPT="MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=4000000000"
 run fredsnet_scale_kept env $KEPT python benchmarks/fredsnet.py --scaling --reps 3
 run public_fdsnet_kept  env $KEPT python benchmarks/public_models.py fredsnet --reps 5
+# and with PyTorch's huge-page allocations (THP_MEM_ALLOC_ENABLE=1: one fault per 2 MB page; stop 39)
+run fredsnet_scale_thp  env THP_MEM_ALLOC_ENABLE=1 python benchmarks/fredsnet.py --scaling --reps 3
+run public_fdsnet_thp   env THP_MEM_ALLOC_ENABLE=1 python benchmarks/public_models.py fredsnet --reps 5
 run layout         python benchmarks/layout.py --reps 10
 run gpu            python benchmarks/gpu.py
 grep -h "^TARGET\|LOADED\|STOLEN" "$out"/*.txt > "$out/summary.txt"

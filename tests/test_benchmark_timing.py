@@ -77,8 +77,8 @@ def test_load_line_and_is_loaded_flag_steal(monkeypatch, steal, load, flags):
     assert _timing.is_loaded(2, steal=False) == ("LOADED" in flags)      # a set-up window's steal: not flagged
 
 
-# (environment, words the tag must hold; () for no tag): figures taken with glibc keeping freed memory, or with
-# another allocator preloaded, say so on their TARGET line
+# (environment, words the tag must hold; () for no tag): figures taken with glibc keeping freed memory, with
+# another allocator preloaded, or with PyTorch's huge-page allocations, say so on their TARGET line
 ALLOCATORS = [
     ({}, ()),
     ({"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "4000000000"},
@@ -88,6 +88,8 @@ ALLOCATORS = [
     ({"GLIBC_TUNABLES": "glibc.pthread.rseq=0"}, ()),                     # a tunable outside malloc
     ({"LD_PRELOAD": "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2"}, ("LD_PRELOAD=libjemalloc.so.2",)),
     ({"LD_PRELOAD": "/opt/lib/libfaketime.so"}, ()),
+    ({"THP_MEM_ALLOC_ENABLE": "1"}, ("THP_MEM_ALLOC_ENABLE=1", "judged on the default")),   # PyTorch's huge pages
+    ({"THP_MEM_ALLOC_ENABLE": "0"}, ()),
 ]
 
 
