@@ -34,7 +34,7 @@ run projected_conv python benchmarks/projected_conv.py --reps 5
 run gyroscope      python benchmarks/gyroscope.py speed --reps 5
 run contention     python benchmarks/contention.py --reps 5
 run synth          python benchmarks/synth.py --reps 5 --seeds 3 11
-run fredsnet       python benchmarks/fredsnet.py --reps 3
+run fredsnet       python benchmarks/fredsnet.py --reps 5
 run fredsnet_scale python benchmarks/fredsnet.py --scaling --reps 3
 run public_hnet    python benchmarks/public_models.py horizonnet --reps 5
 run public_fdsnet  python benchmarks/public_models.py fredsnet --reps 5

@@ -91,9 +91,10 @@ def affine_act(y: Tensor, act: nn.Module, bn: nn.Module | None = None, residual:
     a = _slopes(act, C)
     if lib is None or a is None or y.numel() == 0:
         return None
+    strides = [_strides(t) for t in (y, residual if residual is not None else y)]
     if out is None:
-        out = torch.empty_like(y)
-    strides = [_strides(t) for t in (y, residual if residual is not None else y, out)]
+        out = torch.empty_like(y) if strides[0] is not None else None
+    strides.append(None if out is None else _strides(out))
     if any(s is None for s in strides):
         return None
     (ysb, ysc, ysn), (rsb, rsc, rsn), (osb, osc, osn) = strides

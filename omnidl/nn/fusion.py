@@ -42,6 +42,7 @@ class RowMap(NamedTuple):
     height: int
     width: int
 
+
 #: bytes of one row block of the full-resolution sum (fits in a core's L2 cache on current CPUs)
 BLOCK_BYTES = 4 << 20
 
