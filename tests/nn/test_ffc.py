@@ -233,17 +233,21 @@ DIRECT_OUTPUT = [
 ]
 
 
-@pytest.mark.parametrize("name,channels,ratio,batch,cl,dtype", DIRECT_OUTPUT, ids=[c[0] for c in DIRECT_OUTPUT])
-def test_fourier_block_direct_output_equals_the_concatenation(name, channels, ratio, batch, cl, dtype):
-    torch.manual_seed(1)
+def _eval_block(seed, channels, ratio, batch, cl, dtype):
+    """An eval-mode FourierBlock with non-trivial running statistics and an ``(batch, channels, 8, 12)`` input."""
+    torch.manual_seed(seed)
     fb = FourierBlock(channels, ratio=ratio).eval().to(dtype)
-    for m in fb.modules():                          # non-trivial running statistics
+    for m in fb.modules():
         if isinstance(m, nn.BatchNorm2d):
             m.running_mean.uniform_(-0.5, 0.5)
             m.running_var.uniform_(0.5, 2.0)
     x = torch.randn(batch, channels, 8, 12, dtype=dtype)
-    if cl:
-        x = x.contiguous(memory_format=torch.channels_last)
+    return fb, (x.contiguous(memory_format=torch.channels_last) if cl else x)
+
+
+@pytest.mark.parametrize("name,channels,ratio,batch,cl,dtype", DIRECT_OUTPUT, ids=[c[0] for c in DIRECT_OUTPUT])
+def test_fourier_block_direct_output_equals_the_concatenation(name, channels, ratio, batch, cl, dtype):
+    fb, x = _eval_block(1, channels, ratio, batch, cl, dtype)
     with torch.enable_grad():
         ref = fb(x.clone().requires_grad_())
     with torch.no_grad():
@@ -257,15 +261,7 @@ def test_fourier_block_direct_output_equals_the_concatenation(name, channels, ra
 def test_fourier_block_overwrite_writes_the_output_over_its_input(name, channels, ratio, batch, cl, dtype):
     """``overwrite=True`` (the caller no longer needs x): without autograd the same output, written over x where the
     block writes its parts directly (both parts present); with autograd x is left as it is."""
-    torch.manual_seed(2)
-    fb = FourierBlock(channels, ratio=ratio).eval().to(dtype)
-    for m in fb.modules():
-        if isinstance(m, nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.5, 0.5)
-            m.running_var.uniform_(0.5, 2.0)
-    x = torch.randn(batch, channels, 8, 12, dtype=dtype)
-    if cl:
-        x = x.contiguous(memory_format=torch.channels_last)
+    fb, x = _eval_block(2, channels, ratio, batch, cl, dtype)
     with torch.no_grad():
         ref = fb(x)
     kept = x.clone()

@@ -58,6 +58,17 @@ int omnidl_prelu_backward(const float *x, const float *g, const float *a, int pe
     return 0;
 }
 
+/* This OpenMP thread's share [*lo, *hi) of n items in a parallel region (all of them outside one). */
+static void thread_share(int64_t n, int64_t *lo, int64_t *hi) {
+    int t = 0, nt = 1;
+#ifdef _OPENMP
+    t = omp_get_thread_num();
+    nt = omp_get_num_threads();
+#endif
+    *lo = n * t / nt;
+    *hi = n * (t + 1) / nt;
+}
+
 /* The same on channels-last (B, N, C) maps (x, g, gx; ga as above): each OpenMP thread takes a share of the
  * channels (whole steps of CL_STEP) for every position, so no two threads add into one channel's sum, and runs
  * them in chunks of at most CL_STEP channels with float sums per channel flushed into double every CL_FLUSH
@@ -71,12 +82,8 @@ int omnidl_prelu_backward_cl(const float *x, const float *g, const float *a, int
 #pragma omp parallel num_threads(nthreads)
 #endif
     {
-        int t = 0, nt = 1;
-#ifdef _OPENMP
-        t = omp_get_thread_num();
-        nt = omp_get_num_threads();
-#endif
-        const int64_t s0 = steps * t / nt, s1 = steps * (t + 1) / nt;
+        int64_t s0, s1;
+        thread_share(steps, &s0, &s1);
         for (int64_t b = 0; b < B; ++b)
             for (int64_t c0 = s0 * CL_STEP; c0 < C && c0 < s1 * CL_STEP; c0 += CL_STEP) {
                 const int64_t w = C - c0 < CL_STEP ? C - c0 : CL_STEP;
@@ -126,12 +133,8 @@ int omnidl_affine_prelu_add(const float *y, int64_t ysb, int64_t ysc, int64_t ys
 #pragma omp parallel num_threads(nthreads)
 #endif
         {
-            int th = 0, nt = 1;
-#ifdef _OPENMP
-            th = omp_get_thread_num();
-            nt = omp_get_num_threads();
-#endif
-            const int64_t q0 = rows * th / nt, q1 = rows * (th + 1) / nt;
+            int64_t q0, q1;
+            thread_share(rows, &q0, &q1);
             int64_t b = q0 / N, n = q0 % N;   /* this thread's rows q0 .. q1-1, walked as (b, n) */
             for (int64_t q = q0; q < q1; ++q) {
                 const float *yq = y + b * ysb + n * ysn;
