@@ -91,7 +91,7 @@ class FourierUnit(nn.Module):
             z = torch.cat([spec.real, spec.imag], dim=-1)                  # (B, C, H, 2Wf)
         else:
             z = torch.stack([spec.real, spec.imag], dim=2).reshape(b, 2 * c, h, wf)
-        z = self.act(self.norm(module_conv2d(self.conv, z))).to(xf.dtype)
+        z = _norm_act(module_conv2d(self.conv, z), self.norm, self.act, z).to(xf.dtype)
         if self.spectrum_layout == "width":
             spec = torch.complex(z[..., :wf], z[..., wf:])
         else:
@@ -125,8 +125,23 @@ class SpectralTransform(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         conv, norm, act = self.conv_in
-        x = act(norm(module_conv2d(conv, self.downsample(x))))
-        return module_conv2d(self.conv_out, x + self.fourier(x))
+        x = self.downsample(x)
+        x = _norm_act(module_conv2d(conv, x), norm, act, x)
+        f = self.fourier(x)
+        if torch.is_grad_enabled() or capturing():
+            return module_conv2d(self.conv_out, x + f)
+        return module_conv2d(self.conv_out, f.add_(x))      # the Fourier unit's output is its own new map
+
+
+def _norm_act(y: Tensor, norm: nn.Module, act: nn.Module, x: Tensor) -> Tensor:
+    """``act(norm(y))`` for ``y``, a convolution's output on ``x``; without autograd written over ``y`` in one native
+    pass where it applies (:mod:`omnidl.nn.epilogue`: the BatchNorm folded into a scale and shift), instead of two
+    new maps."""
+    bn = norm if isinstance(norm, nn.BatchNorm2d) else None
+    own = y.untyped_storage().data_ptr() != x.untyped_storage().data_ptr()
+    if own and (bn is not None or type(norm) is nn.Identity) and epilogue.affine_act(y, act, bn, out=y) is not None:
+        return y
+    return act(norm(y))
 
 
 #: ``False``: the spatial paths of an FFC in inference run as in training, through ``module_conv2d`` (benchmarks'
