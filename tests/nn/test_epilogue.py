@@ -149,16 +149,17 @@ def test_leaves_to_the_modules(case, monkeypatch):
 
 
 @pytest.mark.parametrize("fmt", [torch.contiguous_format, CL])
-def test_fourier_block_and_wconv_in_eval_equal_their_modules(fmt, monkeypatch):
-    """FreDSNet's Fourier block and W-convolution without autograd, with the native epilogue and with the modules
-    (float32)."""
-    from omnidl.nn.ffc import FourierBlock
+def test_fredsnet_modules_in_eval_equal_their_modules(fmt, monkeypatch):
+    """FreDSNet's Fourier block, its spectral transform and the W-convolution without autograd, with the native
+    epilogue and with the modules (float32)."""
+    from omnidl.nn.ffc import FourierBlock, SpectralTransform
     from omnidl.nn.wconv import WConv
     torch.manual_seed(2)
     calls = []
     native_pass = epilogue.affine_act
     monkeypatch.setattr(epilogue, "affine_act", lambda *a, **k: calls.append(1) or native_pass(*a, **k))
-    for module, x in ((FourierBlock(8), torch.randn(2, 8, 6, 10)), (WConv(8, 12), torch.randn(2, 8, 6, 10))):
+    for module, x in ((FourierBlock(8), torch.randn(2, 8, 6, 10)), (WConv(8, 12), torch.randn(2, 8, 6, 10)),
+                      (SpectralTransform(8, 6), torch.randn(2, 8, 6, 10))):
         for m in module.modules():
             if isinstance(m, nn.BatchNorm2d):
                 m.running_mean.normal_()
