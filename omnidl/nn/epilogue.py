@@ -109,4 +109,12 @@ def affine_act(y: Tensor, act: nn.Module, bn: nn.Module | None = None, residual:
     return None if rc else out
 
 
-__all__ = ["affine_act"]
+def over_output(y: Tensor, source: Tensor, act: nn.Module, bn: nn.Module | None = None) -> Tensor | None:
+    """:func:`affine_act` written over ``y``, a layer's new output computed from ``source`` (no second map); ``None``
+    where it does not apply, or where ``y`` shares ``source``'s memory (a layer that returned its input)."""
+    if y.untyped_storage().data_ptr() == source.untyped_storage().data_ptr():
+        return None
+    return affine_act(y, act, bn, out=y)
+
+
+__all__ = ["affine_act", "over_output"]

@@ -138,8 +138,7 @@ def _norm_act(y: Tensor, norm: nn.Module, act: nn.Module, x: Tensor) -> Tensor:
     pass where it applies (:mod:`omnidl.nn.epilogue`: the BatchNorm folded into a scale and shift), instead of two
     new maps."""
     bn = norm if isinstance(norm, nn.BatchNorm2d) else None
-    own = y.untyped_storage().data_ptr() != x.untyped_storage().data_ptr()
-    if own and (bn is not None or type(norm) is nn.Identity) and epilogue.affine_act(y, act, bn, out=y) is not None:
+    if (bn is not None or type(norm) is nn.Identity) and epilogue.over_output(y, x, act, bn) is not None:
         return y
     return act(norm(y))
 

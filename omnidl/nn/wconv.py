@@ -54,11 +54,8 @@ class ConvNormAct(nn.Module):
         if inference_ready(x, self.conv, bn):   # eval without autograd: folded, kept, one oneDNN call when it can
             relu = type(self.act) is nn.ReLU
             y = conv_bn_act(x, self.conv, bn, "relu" if relu else None, ready=True)
-            if relu:
-                return y
             # y is this call's own new map: the activation written over it (omnidl.nn.epilogue), no second map
-            own = y.untyped_storage().data_ptr() != x.untyped_storage().data_ptr()
-            return y if own and epilogue.affine_act(y, self.act, out=y) is not None else self.act(y)
+            return y if relu or epilogue.over_output(y, x, self.act) is not None else self.act(y)
         if expansion.applies(x, self.conv, self.norm, self.act):   # a thin 1x1 expansion in training: fused
             return expansion.expansion(x, self.conv, self.norm, self.act, ready=True)
         folded = self._folded_params(x)

@@ -177,3 +177,20 @@ def test_fredsnet_modules_in_eval_equal_their_modules(fmt, monkeypatch):
             monkeypatch.setattr(epilogue, "ENABLED", True)
         assert ran > 0
         torch.testing.assert_close(got, expect, rtol=1e-5, atol=1e-6)
+
+
+def test_over_output_writes_over_a_new_output_only():
+    """over_output: written over y (same storage returned) for a layer's new output; refused where y shares its
+    source's memory (a layer that returned its input, or a view of it)."""
+    act, bn = _prelu(3), _bn(3)
+    x = torch.randn(1, 3, 4, 5)
+    y = torch.randn(1, 3, 4, 5)
+    with torch.no_grad():
+        expect = act(bn(y))
+        got = epilogue.over_output(y, x, act, bn)
+        assert got is y
+        torch.testing.assert_close(y, expect, rtol=1e-5, atol=1e-6)
+        kept = x.clone()
+        assert epilogue.over_output(x, x, act, bn) is None
+        assert epilogue.over_output(x[:, :2], x, _prelu(2)) is None
+        assert torch.equal(x, kept)
