@@ -56,8 +56,20 @@ def _act(kind: str, C: int) -> nn.Module:
             "identity": nn.Identity}[kind]()
 
 
+@pytest.mark.parametrize("threads", [1, 3])
 @pytest.mark.parametrize("name,shape,fmt,act,with_bn,residual,output", APPLIES, ids=[c[0] for c in APPLIES])
-def test_equals_the_modules(name, shape, fmt, act, with_bn, residual, output):
+def test_equals_the_modules(name, shape, fmt, act, with_bn, residual, output, threads, monkeypatch):
+    """Each case on one thread and split across three (the split walks across batch and plane boundaries)."""
+    monkeypatch.setattr(epilogue, "SERIAL_NUMEL", 0)
+    kept = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        _check_case(shape, fmt, act, with_bn, residual, output)
+    finally:
+        torch.set_num_threads(kept)
+
+
+def _check_case(shape, fmt, act, with_bn, residual, output):
     torch.manual_seed(0)
     B, C, H, W = shape
     act, bn = _act(act, C), (_bn(C) if with_bn else None)
