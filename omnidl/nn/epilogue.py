@@ -116,6 +116,8 @@ def affine_act(y: Tensor, act: nn.Module, bn: nn.Module | None = None, residual:
 def over_output(y: Tensor, source: Tensor, act: nn.Module, bn: nn.Module | None = None) -> Tensor | None:
     """:func:`affine_act` written over ``y``, a layer's new output computed from ``source`` (no second map); ``None``
     where it does not apply, or where ``y`` shares ``source``'s memory (a layer that returned its input)."""
+    if not (ENABLED and type(y) is torch.Tensor and type(source) is torch.Tensor) or capturing():
+        return None                           # (before any data pointer: fake tensors of torch.export have none)
     if y.untyped_storage().data_ptr() == source.untyped_storage().data_ptr():
         return None
     return affine_act(y, act, bn, out=y)

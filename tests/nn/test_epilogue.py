@@ -206,3 +206,19 @@ def test_over_output_writes_over_a_new_output_only():
         assert epilogue.over_output(x, x, act, bn) is None
         assert epilogue.over_output(x[:, :2], x, _prelu(2)) is None
         assert torch.equal(x, kept)
+
+
+def test_torch_export_traces_through_the_callers():
+    """torch.export traces with tensors that have no data pointer: the callers refuse them before touching memory,
+    and the exported program gives the eager outputs."""
+    from omnidl.nn.ffc import SpectralTransform
+    from omnidl.nn.wconv import WConv
+    torch.manual_seed(3)
+    for module in (SpectralTransform(8, 6), WConv(8, 12)):
+        module = module.eval()
+        x = torch.randn(1, 8, 6, 10)
+        with torch.no_grad():
+            ref = module(x)
+        ep = torch.export.export(module, (x,))
+        with torch.no_grad():
+            torch.testing.assert_close(ep.module()(x), ref, rtol=1e-5, atol=1e-6)
