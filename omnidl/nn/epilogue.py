@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from . import native
 from .capture import capturing
-from .inference import bn_scale_shift, foldable
+from .inference import bn_scale_shift, foldable, same_storage
 from .prelu import PReLU
 
 #: ``False``: the modules run as they are (benchmarks' in-process A/B)
@@ -67,7 +67,7 @@ def _records(*tensors: Tensor | None) -> bool:
 
 def _aliases(a: Tensor, b: Tensor) -> bool:
     """``a`` and ``b`` share memory other than element for element (the same pointer and strides is allowed)."""
-    if a.untyped_storage().data_ptr() != b.untyped_storage().data_ptr():
+    if not same_storage(a, b):
         return False
     return not (a.data_ptr() == b.data_ptr() and a.stride() == b.stride())
 
@@ -118,7 +118,7 @@ def over_output(y: Tensor, source: Tensor, act: nn.Module, bn: nn.Module | None 
     where it does not apply, or where ``y`` shares ``source``'s memory (a layer that returned its input)."""
     if not (ENABLED and type(y) is torch.Tensor and type(source) is torch.Tensor) or capturing():
         return None                           # (before any data pointer: fake tensors of torch.export have none)
-    if y.untyped_storage().data_ptr() == source.untyped_storage().data_ptr():
+    if same_storage(y, source):
         return None
     return affine_act(y, act, bn, out=y)
 

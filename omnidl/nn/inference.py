@@ -241,12 +241,17 @@ def _native_packing(entry: _Entry, slot: str, pack) -> tuple:
     return lib, kept[1]
 
 
+def same_storage(a: Tensor, b: Tensor) -> bool:
+    """Whether ``a`` and ``b`` are views of one storage (so a write into one may change the other)."""
+    return a.untyped_storage().data_ptr() == b.untyped_storage().data_ptr()
+
+
 def _writable_residual(x: Tensor, residual: Tensor, cout: int) -> bool:
     """Whether a native kernel may write a stride-1 layer's output over ``residual`` while it reads ``x``: a plain
     channels-last tensor of the output's shape and dtype, outside autograd, not sharing ``x``'s storage."""
     return (type(residual) is torch.Tensor and residual.shape == (x.shape[0], cout) + tuple(x.shape[2:])
             and residual.dtype == x.dtype and residual.is_contiguous(memory_format=CL) and not residual.requires_grad
-            and residual.untyped_storage().data_ptr() != x.untyped_storage().data_ptr())
+            and not same_storage(residual, x))
 
 
 def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, residual: Tensor) -> Tensor | None:
