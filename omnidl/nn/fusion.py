@@ -60,12 +60,29 @@ def interpolation_matrix(n_out: int, n_in: int, *, dtype: torch.dtype = torch.fl
     Row ``r`` samples position ``r (n_in - 1) / (n_out - 1)`` of the input: weight ``1 - f`` on
     ``floor`` and ``f`` on the next sample (``F.interpolate``'s rule).
     """
+    args = (int(n_out), int(n_in), dtype, torch.device(device) if device is not None else torch.device("cpu"))
+    return _build_matrix(*args) if capturing() else _cached_matrix(*args)
+
+
+def _build_matrix(n_out: int, n_in: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     i0, i1, f = _linear_taps(n_out, n_in)
     A = torch.zeros(n_out, n_in, dtype=torch.float64)
     rows = torch.arange(n_out)
     A.index_put_((rows, i0), 1.0 - f, accumulate=True)
     A.index_put_((rows, i1), f, accumulate=True)
     return A.to(dtype=dtype, device=device)
+
+
+#: :func:`interpolation_matrix` built once per size, dtype and device (a CUDA network then copies nothing from the
+#: host per call, and a CUDA graph can capture it); callers never write it. Not while tracing (fake tensors).
+_cached_matrix = functools.lru_cache(maxsize=64)(_build_matrix)
+
+
+@functools.lru_cache(maxsize=64)
+def _tap_rows(n_out: int, n_in: int) -> tuple[list[int], list[int]]:
+    """The first and last input row (``i0``, ``i1``) that each output row of :func:`interpolation_matrix` reads."""
+    i0, i1, _ = _linear_taps(n_out, n_in)
+    return i0.tolist(), i1.tolist()
 
 
 def _linear_taps(n_out: int, n_in: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -160,14 +177,14 @@ class UpsampleSum:
                     term, w, fresh = self._flat(F.interpolate(self._unflat(term), size=(b - a, W), mode="bilinear",
                                                               align_corners=True)), w, True
             else:                                         # height pass on the rows it needs
-                block = A[a:b]
-                used = block.any(0).nonzero()
-                lo, hi = int(used[0]), int(used[-1]) + 1
-                block = block[:, lo:hi] if w is None else block[:, lo:hi] * w
-                block = block.expand(self.flat_batch, -1, -1)
+                i0, i1 = _tap_rows(*A.shape)              # the source rows a:b read (no device sync)
+                lo, hi = i0[a], i1[b - 1] + 1
+                block = A[a:b, lo:hi] if w is None else A[a:b, lo:hi] * w
                 src = _rows_of(flat, lo, hi) if isinstance(flat, Tensor) else self._flat(flat(lo, hi))
+                block = block.to(src.dtype).expand(self.flat_batch, -1, -1)   # maps of another dtype (autocast)
                 if width == W:
-                    acc = torch.bmm(block, src) if acc is None else acc.baddbmm_(block, src)
+                    acc = (torch.bmm(block, src) if acc is None
+                           else acc.baddbmm_(block.to(acc.dtype), src.to(acc.dtype)))
                     continue
                 term = F.interpolate(self._unflat(torch.bmm(block, src)), size=(b - a, W),
                                      mode="bilinear", align_corners=True)     # deferred width pass

@@ -8,7 +8,8 @@ at hidden 512), so the layer is bound by how fast the cores read it. The kernel 
 units across the threads (one barrier per step) and alternates the row order from step to step, so each core
 re-reads its own slice mostly from its L2 cache: about 1.2x oneDNN's layer and 2.3x one thread per direction
 (HorizonNet's 2-layer BiLSTM, hidden 512, 128 steps, 2 threads; ``benchmarks/public_models.py`` times the whole
-network). Elsewhere it calls ``lstm(x)``.
+network). Elsewhere it calls ``lstm(x)`` -- on CUDA in eval mode with a gradient to record without cuDNN, whose
+RNN backward exists in training mode only (an eval-mode backward: saliency maps, test-time optimisation).
 """
 from __future__ import annotations
 
@@ -89,6 +90,10 @@ def lstm_forward(lstm: nn.LSTM, x: Tensor, hx: tuple[Tensor, Tensor] | None = No
     """``lstm(x, hx)``: ``x (S, 1, In)`` (``(1, S, In)`` with ``batch_first``) -> ``(out (S, 1, D*H), (h_n, c_n)
     (L*D, 1, H) each)``; on the native recurrence where :func:`lstm_supported`, else ``lstm(x, hx)`` itself."""
     if not lstm_supported(lstm, x):
+        if x.is_cuda and not lstm.training and torch.is_grad_enabled() and (
+                x.requires_grad or any(p.requires_grad for p in lstm._flat_weights)):
+            with torch.backends.cudnn.flags(enabled=False):
+                return lstm(x, hx)
         return lstm(x, hx)
     lib = native.library()
     D, H, L = 2 if lstm.bidirectional else 1, lstm.hidden_size, lstm.num_layers

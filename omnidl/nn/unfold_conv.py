@@ -72,9 +72,11 @@ _Pair = int | tuple[int, int]
 def weight_heavy(x: Tensor, weight: Tensor, stride: _Pair = 1, padding: _Pair | str = 0, dilation: _Pair = 1,
                  groups: int = 1) -> bool:
     """Whether :func:`conv2d` takes the unfolded product for these arguments: CPU, float32/float64, 4-d input,
-    no groups, numeric padding, and ``out_channels >= WEIGHT_HEAVY_RATIO * B * Ho * Wo``."""
+    no groups, numeric padding, no autocast (its products would run in the autocast dtype and its backward
+    would meet them with the float32 weight), and ``out_channels >= WEIGHT_HEAVY_RATIO * B * Ho * Wo``."""
     if not (ENABLED and groups == 1 and not isinstance(padding, str) and x.dim() == 4 and weight.dim() == 4
-            and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and weight.dtype == x.dtype):
+            and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and weight.dtype == x.dtype
+            and not torch.is_autocast_enabled("cpu")):
         return False
     if capturing():
         return False
@@ -89,14 +91,15 @@ def weight_heavy(x: Tensor, weight: Tensor, stride: _Pair = 1, padding: _Pair | 
 def pointwise(x: Tensor, weight: Tensor, stride: _Pair = 1, padding: _Pair | str = 0, groups: int = 1) -> bool:
     """Whether :func:`conv2d` takes the product for a 1x1 convolution in training: stride 1, no padding, no groups,
     a float32/float64 CPU map of at most :data:`POINTWISE_MAX_POSITIONS` positions (batch x pixels) or with at
-    most :data:`POINTWISE_THIN` input or output channels, autograd recording. Its columns are the input itself (a
-    view), so the product skips oneDNN's re-layouts of the input, the weight, the output and each gradient in
-    NCHW."""
+    most :data:`POINTWISE_THIN` input or output channels, autograd recording, no autocast. Its columns are the input
+    itself (a view), so the product skips oneDNN's re-layouts of the input, the weight, the output and each gradient
+    in NCHW."""
     if not (ENABLED and POINTWISE and groups == 1 and weight.dim() == 4 and tuple(weight.shape[-2:]) == (1, 1)
             and x.dim() == 4 and torch.is_grad_enabled() and _pair(stride, "stride") == (1, 1)
             and not isinstance(padding, str) and _pair(padding, "padding") == (0, 0)):
         return False
     return (x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and weight.dtype == x.dtype
+            and not torch.is_autocast_enabled("cpu")
             and (x.shape[0] * x.shape[2] * x.shape[3] <= POINTWISE_MAX_POSITIONS
                  or min(weight.shape[0], weight.shape[1]) <= POINTWISE_THIN) and not capturing())
 

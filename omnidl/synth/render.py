@@ -174,6 +174,9 @@ def _render(scene: Scene, camera, pose: np.ndarray, layout: bool, dtype: torch.d
         out["horizon_normal"] = torch.as_tensor(pose[:3, :3].T @ np.array([0.0, 0.0, 1.0]), dtype=torch.float32)
         out["camera_height"] = torch.tensor(float(pose[2, 3]), dtype=torch.float32)
         out["ceiling_height"] = torch.tensor(float(scene.height), dtype=torch.float32)
+        # the layout ground truth is a few (W,)-wide float64 passes on the CPU (bisections along columns);
+        # every map of the sample is on the render's device
+        out = {k: v.to(image.device) for k, v in out.items()}
     out["meta"] = meta
     return out
 

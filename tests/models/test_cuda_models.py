@@ -52,3 +52,72 @@ def test_model_autocast_cuda(name, dt):
     loss.backward()
     bad = [n for n, p in model.named_parameters() if p.grad is not None and not torch.isfinite(p.grad).all()]
     assert not bad, f"{name}: non-finite gradients under {dt} autocast: {bad[:5]}"
+
+
+@pytest.mark.parametrize("name", list_models())
+def test_model_eval_float32_cuda_matches_cpu(name):
+    """Eval float32: the CPU takes its fast inference paths (native kernels, Winograd, fused epilogues), CUDA the
+    tensor ops; the two agree (cuDNN's TF32 is switched off so that both are float32 arithmetic)."""
+    torch.manual_seed(0)
+    cfg = smoke_config(name)
+    model = create_model(name, **cfg["kwargs"]).eval()
+    h, w = cfg["size"]
+    x = torch.rand(1, 3, h, w)
+    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        with torch.no_grad():
+            ref = model(x)
+            out = model.to(CUDA)(x.to(CUDA))
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
+    for k, v in ref.items():
+        if isinstance(v, torch.Tensor) and v.is_floating_point():
+            scale = float(v.abs().max()) + 1e-6
+            torch.testing.assert_close(out[k].cpu(), v, rtol=1e-4, atol=1e-4 * scale, msg=f"{name}: output {k}")
+
+
+def test_fredsnet_resnet50_eval_cuda_matches_cpu():
+    """The thesis model at a size where the CPU's row-blocked fusion and Fourier-block epilogues are taken."""
+    torch.manual_seed(0)
+    model = create_model("fredsnet", backbone="resnet50", width=1.0).eval()
+    x = torch.rand(1, 3, 128, 256)
+    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        with torch.no_grad():
+            ref = model(x)
+            out = model.to(CUDA)(x.to(CUDA))
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
+    for k in ("depth", "semantic"):
+        scale = float(ref[k].abs().max())
+        torch.testing.assert_close(out[k].cpu(), ref[k], rtol=1e-4, atol=1e-4 * scale, msg=k)
+
+
+@pytest.mark.parametrize("name", list_models())
+def test_model_eval_forward_replays_from_a_cuda_graph(name):
+    """Batch-1 inference is launch-bound on a GPU; a CUDA graph removes the launch gaps (``benchmarks/gpu.py``:
+    FreDSNet 20 -> 103 fps at 512x256 on an H200). That needs a forward without host syncs or host-to-device
+    copies: captured once, the graph replays on new input what the eager forward computes."""
+    torch.manual_seed(0)
+    cfg = smoke_config(name)
+    model = create_model(name, **cfg["kwargs"]).to(CUDA).eval()
+    h, w = cfg["size"]
+    x = torch.rand(1, 3, h, w, device=CUDA)
+    with torch.no_grad():
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):                     # warm-up: plans, caches, cuDNN's choices
+            for _ in range(2):
+                model(x)
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            out = model(x)
+        x.copy_(torch.rand_like(x))
+        graph.replay()
+        eager = model(x)
+    for k, v in eager.items():
+        if isinstance(v, torch.Tensor) and v.is_floating_point():
+            torch.testing.assert_close(out[k], v, rtol=1e-5, atol=1e-5 * (float(v.abs().max()) + 1e-6), msg=k)

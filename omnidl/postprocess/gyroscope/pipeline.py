@@ -122,10 +122,11 @@ class Gyroscope:
         """:meth:`up_vectors` from the maps of :meth:`_maps`."""
         B = images.shape[0]
         if maps is None:
-            return up_vector(images).expand(B, 3).clone(), torch.ones(B, dtype=torch.bool)
+            return up_vector(images).expand(B, 3).clone(), torch.ones(B, dtype=torch.bool, device=images.device)
         with limit_threads(self.o.photometric_threads):
             res = fit_horizon(*maps, self.hopts)
-        return res["up"].to(images.dtype).cpu(), res["valid"].cpu()
+        # on the frames' device (the horizon network may run elsewhere): the rotations below meet the frames there
+        return res["up"].to(images.device, images.dtype), res["valid"].to(images.device)
 
     def set_reference(self, image: Tensor) -> None:
         """Fix the reference panorama ``(3, H, W)`` (or ``(1, 3, H, W)``): its tilt and MPP samples."""
@@ -145,8 +146,8 @@ class Gyroscope:
         self.T_ref = tilt_rotation(self.ref_up)
         self.ref_mpp = mpp_samples(self.ref_work, self.o.mpp_level)[1] if self.o.use_mpp else None
         # per-reference parts of the solvers, prepared once (their fast paths then never read the reference)
-        self.ref_mpp_field = mpp_vertex_field(icosahedron_vertices(self.o.mpp_level), self.ref_mpp, self.o.lambda_g) \
-            if self.o.use_mpp else None
+        vertices = icosahedron_vertices(self.o.mpp_level, device=self.ref_work.device)
+        self.ref_mpp_field = mpp_vertex_field(vertices, self.ref_mpp, self.o.lambda_g) if self.o.use_mpp else None
         self.ref_pvg = pvg_reference_values(self.ref_work, self.o.pvg_level, self.o.pvg_blur) \
             if self.o.use_pvg else None
 
@@ -229,8 +230,8 @@ class Gyroscope:
         R = self.T_ref.transpose(-1, -2) @ T_cur
         axis = self.T_ref[1, :]  # T_ref.T @ y: the reference's vertical
         B = images.shape[0]
-        mpp_cost = torch.full((B,), float("nan"))
-        pvg_cost = torch.full((B,), float("nan"))
+        mpp_cost = torch.full((B,), float("nan"), device=images.device)
+        pvg_cost = torch.full((B,), float("nan"), device=images.device)
         with limit_threads(self.o.photometric_threads):
             if self.o.use_mpp:
                 r = mpp_yaw(work, self.ref_work, R, axis, level=self.o.mpp_level, lambda_g=self.o.lambda_g,
