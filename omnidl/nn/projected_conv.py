@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from omnidl.cameras.base import Camera
 from omnidl.cameras.resolve import resolve_camera
 
-from . import plan_columns, projected_taps
+from . import grid_conv, plan_columns, projected_taps
 from .fused import fused_conv2d, fused_supported
 from .offsets import Pair, compute_sampling
 from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
@@ -29,6 +29,7 @@ _LOCK = threading.Lock()
 _GEOMETRY: dict[tuple, tuple[Tensor, Tensor]] = {}  # key -> (offsets, mask), float64 CPU
 _PLANS: dict[tuple, SamplingPlan] = {}  # key + (device, dtype) -> plan
 _DEVICE_OFFSETS: dict[tuple, tuple[Tensor, Tensor]] = {}  # key + (device, dtype) -> (offsets, mask)
+_GRID_PLANS: dict[tuple, grid_conv.GridPlan | None] = {}  # key + (device, dtype) -> CUDA sampling grid (or None)
 
 
 def _geometry_key(camera: Camera, in_hw: Pair, kernel_size: Pair, stride: Pair, padding: Pair, dilation: Pair,
@@ -75,18 +76,34 @@ def get_plan(key: tuple, device: torch.device, dtype: torch.dtype) -> SamplingPl
     return hit
 
 
+def get_grid_plan(key: tuple, device: torch.device, dtype: torch.dtype) -> grid_conv.GridPlan | None:
+    """Cached :class:`~omnidl.nn.grid_conv.GridPlan` of a geometry key (``None``: the grid path does not apply)."""
+    full = key + (str(device), dtype)
+    with _LOCK:
+        if full in _GRID_PLANS:
+            return _GRID_PLANS[full]
+    off, mask = _geometry(key)
+    _, in_hw, k, s, p, d, wrap, _, _ = key
+    hit = grid_conv.build_grid_plan(off, mask, in_hw, k, s, p, d, wrap=wrap)
+    hit = None if hit is None else hit.to(device=device, dtype=dtype)
+    with _LOCK:
+        return _GRID_PLANS.setdefault(full, hit)
+
+
 def clear_plan_cache() -> None:
     """Forget every cached offset map and sampling plan."""
     with _LOCK:
         _GEOMETRY.clear()
         _PLANS.clear()
         _DEVICE_OFFSETS.clear()
+        _GRID_PLANS.clear()
 
 
 def plan_cache_info() -> dict[str, int]:
     """Number of cached geometries/plans and the bytes held by the plans and offset maps."""
     with _LOCK:
-        plan_bytes = sum(p.nbytes() for p in _PLANS.values())
+        plan_bytes = sum(p.nbytes() for p in _PLANS.values()) + sum(
+            g.grid.numel() * g.grid.element_size() for g in _GRID_PLANS.values() if g is not None)
         off_bytes = sum(o.numel() * o.element_size() + m.numel() * m.element_size()
                         for o, m in list(_GEOMETRY.values()) + list(_DEVICE_OFFSETS.values()))
         return {"geometries": len(_GEOMETRY), "plans": len(_PLANS), "device_offsets": len(_DEVICE_OFFSETS),
@@ -217,7 +234,12 @@ class ProjectedConv2d(nn.Conv2d):
         and a sampled sum (:mod:`.projected_taps`, CPU float32/float64), else the native fused gather+product kernel
         (:mod:`.fused`; a weight-heavy layer in training: gathered columns and the unfolded product,
         :mod:`.plan_columns`), else (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and
-        whenever ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`)."""
+        whenever ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`). On CUDA (without
+        ``chunk_positions``) one ``grid_sample`` of all taps and one product (:mod:`.grid_conv`)."""
+        if self.chunk_positions is None and grid_conv.applies(x):      # CUDA: one grid_sample, one product
+            grid = get_grid_plan(key, x.device, x.dtype)
+            if grid is not None:
+                return grid_conv.grid_conv2d(x, weight, bias, grid)
         plan = get_plan(key, x.device, x.dtype)
         if self.chunk_positions is None:
             if projected_taps.pays(x, weight, bias, plan):

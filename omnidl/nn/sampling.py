@@ -49,6 +49,10 @@ from .offsets import Pair, output_size
 #: target size (bytes) of one chunk of gathered columns (gather -> GEMM -> scatter stay in L2/L3;
 #: measured here: ~4k positions of 64 channels beat both 1k and 16k)
 CHUNK_BYTES = 10_000_000
+#: the same on CUDA, where this path runs only under ``torch.use_deterministic_algorithms`` or for a wrap wider than
+#: the image (:mod:`.grid_conv` elsewhere): a whole image per chunk at the usual sizes (each chunk costs its gather
+#: and product launches; on an H200 eight chunks of 10 MB ran 6.1x cuDNN's convolution, one chunk 4.4x)
+CUDA_CHUNK_BYTES = 512_000_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,9 +186,11 @@ def _gather(plan: SamplingPlan, xb: Tensor, start: int, end: int) -> Tensor:
     return cols.view(end - start, K * xb.shape[1])
 
 
-def chunk_positions(plan: SamplingPlan, channels: int, element_size: int) -> int:
-    """Output positions per chunk so that one chunk of columns is about :data:`CHUNK_BYTES`."""
-    return max(16, CHUNK_BYTES // (plan.taps * channels * element_size))
+def chunk_positions(plan: SamplingPlan, channels: int, element_size: int, device: torch.device | None = None) -> int:
+    """Output positions per chunk so that one chunk of columns is about :data:`CHUNK_BYTES`
+    (:data:`CUDA_CHUNK_BYTES` on a CUDA ``device``)."""
+    target = CUDA_CHUNK_BYTES if device is not None and device.type == "cuda" else CHUNK_BYTES
+    return max(16, target // (plan.taps * channels * element_size))
 
 
 def _is_channels_last(t: Tensor) -> bool:
@@ -397,8 +403,8 @@ def fixed_offset_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: Sa
     """Convolution of ``x (B, C, H, W)`` with ``weight (Cout, C, kh, kw)`` sampled by ``plan`` (groups = 1).
 
     Work is done in chunks of ``positions`` output positions (default: about
-    :data:`CHUNK_BYTES` of columns per chunk): gather, GEMM and scatter of a chunk stay in
-    cache, and the columns are recomputed in backward instead of being stored (no
+    :data:`CHUNK_BYTES` of columns per chunk, :data:`CUDA_CHUNK_BYTES` on CUDA): gather, GEMM and scatter of a
+    chunk stay in cache, and the columns are recomputed in backward instead of being stored (no
     ``Ho*Wo*K*C`` buffer is kept between forward and backward).
     Returns ``(B, Cout, Ho, Wo)`` in the memory format of ``x`` (channels-last input ->
     channels-last output without any copy; that is the fastest layout on CPU).
@@ -413,7 +419,7 @@ def fixed_offset_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: Sa
     if plan.weight.dtype != x.dtype or plan.idx.device != x.device:
         raise ValueError(f"plan is {plan.weight.dtype} on {plan.idx.device}, input is {x.dtype} on {x.device}")
     if positions is None:
-        positions = chunk_positions(plan, x.shape[1], x.element_size())
+        positions = chunk_positions(plan, x.shape[1], x.element_size(), x.device)
     return _FixedOffsetConv.apply(x, weight, bias, plan, int(positions))
 
 
