@@ -1,22 +1,27 @@
 """GPU speed (issue 17, item 8): FreDSNet fps, ProjectedConv2d vs cuDNN conv2d, a training step.
 
-    python benchmarks/gpu.py [--device cuda] [--reps 20] [--amp bf16|fp16|none]
+    python benchmarks/gpu.py [--device cuda] [--reps 20] [--amp bf16|fp16|none] [--profile FILE]
 
 * FreDSNet (ResNet-50, width 1) forward at 512x256, batch 1, eval + no_grad, float32 and under autocast:
   frames per second (target >= 100 fps on an H100/H200-class GPU; the thesis reports 33 fps on an RTX 3090),
-  as a ratio to torchvision's ResNet-50 forward at the same size in the same run;
-* ``ProjectedConv2d`` (fast backend) forward and forward+backward vs ``nn.Conv2d`` (cuDNN) at 64 ch 128x256
-  and 256 ch 64x128, batch 1 (target <= 1.5x);
+  as a ratio to torchvision's ResNet-50 forward at the same size in the same run; also replayed from a CUDA
+  graph (batch-1 inference is launch-bound: the graph removes the per-kernel launch gaps);
+* ``ProjectedConv2d`` (fast backend: :mod:`omnidl.nn.grid_conv` on CUDA) forward and forward+backward vs
+  ``nn.Conv2d`` (cuDNN, TF32 as PyTorch's default, and without TF32) at 64 ch 128x256 and 256 ch 64x128, batch 1
+  (target <= 1.5x), with an A/B of ``grid_conv.SAMPLE_CHANNELS``;
 * a FreDSNet training step (CE + L1, zero_grad + forward + backward + SGD step) at 256x128, batch 4.
 
-Times are CUDA-event medians after warm-up (plans, cuDNN autotuning), interleaved per repetition. Prints a
-note and exits 0 when no CUDA device is present (CPU speed: benchmarks/projected_conv.py, fredsnet.py).
+Times are CUDA-event medians after warm-up (plans, cuDNN autotuning), interleaved per repetition. Each part
+runs on even when another failed (its traceback is printed; the exit status is 1 then). ``--profile FILE``
+writes the CUDA-time tables of one FreDSNet forward and one ProjectedConv2d forward+backward (torch.profiler).
+Prints a note and exits 0 when no CUDA device is present (CPU speed: benchmarks/projected_conv.py, fredsnet.py).
 """
 from __future__ import annotations
 
 import argparse
 import statistics
 import sys
+import traceback
 from pathlib import Path
 
 import torch
@@ -42,49 +47,73 @@ def _cuda_times(jobs: dict, reps: int, warmup: int = 3) -> dict[str, float]:
     return {k: statistics.median(v) for k, v in out.items()}
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--reps", type=int, default=20)
-    ap.add_argument("--amp", default="bf16", choices=["bf16", "fp16", "none"])
-    a = ap.parse_args(argv)
-    if not torch.cuda.is_available():
-        print("no CUDA device: benchmarks/gpu.py measured nothing (the GPU items are untested here)")
-        return
+def _graphed(fn, x: torch.Tensor):
+    """``fn(x)`` captured in a CUDA graph: returns ``replay()`` (reads the static ``x``), or raises what the
+    capture raised (a path that syncs with the host or allocates outside the graph's pool cannot be captured)."""
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        for _ in range(3):
+            fn(x)
+    torch.cuda.current_stream().wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        fn(x)
+    return graph.replay
+
+
+def fredsnet_fps(dev, reps: int, amp: str, amp_dtype) -> None:
+    """Part 1: FreDSNet forward fps at 512x256 (eager, autocast, CUDA graph) against torchvision's ResNet-50."""
     import torchvision
 
-    from omnidl.cameras import Equirectangular
     from omnidl.models.fredsnet import FreDSNet
-    from omnidl.nn import ProjectedConv2d
-
-    dev = torch.device(a.device)
-    torch.backends.cudnn.benchmark = True
-    amp_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "none": None}[a.amp]
-    print(f"# {torch.cuda.get_device_name(dev)}, torch {torch.__version__}, median of {a.reps} interleaved reps")
-
-    # 1. FreDSNet forward fps at 512x256
     torch.manual_seed(0)
     net = FreDSNet(backbone="resnet50", width=1.0).to(dev).eval()
-    r50 = torchvision.models.resnet50().to(dev).eval().to(memory_format=torch.channels_last)
+    r50 = torchvision.models.resnet50().to(dev).eval()
     x = torch.rand(1, 3, 256, 512, device=dev)
 
-    def fwd(m, amp):
-        def run():
-            with torch.no_grad(), torch.autocast("cuda", dtype=amp or torch.float32, enabled=amp is not None):
-                m(x)
+    def call(m, amp_dt):
+        def run(inp=x):
+            with torch.no_grad(), torch.autocast("cuda", dtype=amp_dt or torch.float32, enabled=amp_dt is not None):
+                return m(inp)
         return run
-    jobs = {"fredsnet fp32": fwd(net, None), "resnet50 fp32": fwd(r50, None)}
+    nchw = FreDSNet(backbone="resnet50", width=1.0, channels_last=False).to(dev).eval()
+    nchw.load_state_dict(net.state_dict())
+    jobs = {"fredsnet fp32": call(net, None), "resnet50 fp32": call(r50, None), "fredsnet-nchw fp32": call(nchw, None)}
     if amp_dtype is not None:
-        jobs[f"fredsnet {a.amp}"] = fwd(net, amp_dtype)
-        jobs[f"resnet50 {a.amp}"] = fwd(r50, amp_dtype)
-    t = _cuda_times(jobs, a.reps)
-    for prec in ["fp32"] + ([a.amp] if amp_dtype is not None else []):
-        ms = t[f"fredsnet {prec}"]
-        print(f"TARGET FreDSNet forward 512x256 B1 {prec}: {1e3 / ms:.0f} fps ({ms:.2f} ms) = "
-              f"{ms / t[f'resnet50 {prec}']:.2f}x resnet50 forward ({t[f'resnet50 {prec}']:.2f} ms) "
-              f"(target >= 100 fps: {'met' if 1e3 / ms >= 100 else 'MISSED'})")
+        jobs[f"fredsnet {amp}"] = call(net, amp_dtype)
+        jobs[f"resnet50 {amp}"] = call(r50, amp_dtype)
+    precs = ["fp32"] + ([amp] if amp_dtype is not None else [])
+    graphs = {}
+    for prec in precs:
+        for name, m in (("fredsnet", net), ("resnet50", r50)):
+            try:
+                graphs[f"{name} {prec} graph"] = _graphed(call(m, None if prec == "fp32" else amp_dtype), x)
+            except Exception as e:  # noqa: BLE001 -- reported, the eager figures still stand
+                where = [f"{f.filename.rsplit('omnidl/', 1)[-1]}:{f.lineno}"
+                         for f in traceback.extract_tb(e.__traceback__) if "/omnidl/" in f.filename][-3:]
+                print(f"# {name} {prec}: no CUDA graph ({type(e).__name__}: "
+                      f"{str(e).splitlines()[0][:160]}; at {where})")
+                torch.cuda.synchronize()
+    t = _cuda_times({**jobs, **graphs}, reps)
+    print(f"# FreDSNet eager fp32 in NCHW memory (channels_last=False): {t['fredsnet-nchw fp32']:.2f} ms "
+          f"against {t['fredsnet fp32']:.2f} ms channels-last (the eval default)")
+    for prec in precs:
+        for mode in ("", " graph"):
+            key = f"fredsnet {prec}{mode}"
+            if key not in t:
+                continue
+            ms, base = t[key], t.get(f"resnet50 {prec}{mode}", float("nan"))
+            print(f"TARGET FreDSNet forward 512x256 B1 {prec}{mode or ' eager'}: {1e3 / ms:.0f} fps ({ms:.2f} ms) = "
+                  f"{ms / base:.2f}x resnet50 forward ({base:.2f} ms) "
+                  f"(target >= 100 fps: {'met' if 1e3 / ms >= 100 else 'MISSED'})")
 
-    # 2. ProjectedConv2d vs cuDNN conv2d
+
+def projected_conv(dev, reps: int) -> None:
+    """Part 2: ProjectedConv2d (fast backend) vs cuDNN conv2d, forward and forward+backward."""
+    from omnidl.cameras import Equirectangular
+    from omnidl.nn import ProjectedConv2d, grid_conv
+    SPLITS = (1, 4, 32, 1 << 20)          # 1 << 20: no split (one image of C channels)
     for C, H, W in ((64, 128, 256), (256, 64, 128)):
         torch.manual_seed(0)
         fast = ProjectedConv2d(C, C, 3, padding=1, camera=Equirectangular(width=W, height=H)).to(dev)
@@ -105,14 +134,36 @@ def main(argv=None) -> None:
                 m.zero_grad(set_to_none=True)
                 m(xg).sum().backward()
             return run
-        t = _cuda_times({"fast fwd": f(fast), "conv fwd": f(conv), "fast fwdbwd": fb(fast), "conv fwdbwd": fb(conv)},
-                        a.reps)
+        def exact(fn):                  # cuDNN without TF32: float32 arithmetic, as the fast backend's products
+            def run():
+                with torch.backends.cudnn.flags(enabled=True, benchmark=True, deterministic=False, allow_tf32=False):
+                    fn()
+            return run
+
+        def split(fn, n):               # grid_conv's channels per grid_sample image (A/B of SAMPLE_CHANNELS)
+            def run():
+                keep, grid_conv.SAMPLE_CHANNELS = grid_conv.SAMPLE_CHANNELS, n
+                try:
+                    fn()
+                finally:
+                    grid_conv.SAMPLE_CHANNELS = keep
+            return run
+        t = _cuda_times({"fast fwd": f(fast), "conv fwd": f(conv), "fast fwdbwd": fb(fast), "conv fwdbwd": fb(conv),
+                         "conv32 fwd": exact(f(conv)), "conv32 fwdbwd": exact(fb(conv)),
+                         **{f"fast/{n} {w}": split(job(fast), n)
+                            for n in SPLITS for w, job in (("fwd", f), ("fwdbwd", fb))}}, reps)
         for what in ("fwd", "fwdbwd"):
             r = t[f"fast {what}"] / t[f"conv {what}"]
             print(f"TARGET ProjectedConv2d {what} {C}ch {H}x{W} B1: {t[f'fast {what}']:.3f} ms = {r:.2f}x cuDNN "
-                  f"conv2d ({t[f'conv {what}']:.3f} ms) (target <= 1.5x: {'met' if r <= 1.5 else 'MISSED'})")
+                  f"conv2d ({t[f'conv {what}']:.3f} ms, TF32) (target <= 1.5x: {'met' if r <= 1.5 else 'MISSED'}); "
+                  f"{t[f'fast {what}'] / t[f'conv32 {what}']:.2f}x cuDNN without TF32 ({t[f'conv32 {what}']:.3f} ms); "
+                  f"channels per grid_sample image (default {grid_conv.SAMPLE_CHANNELS}): "
+                  + ", ".join(f"{n}: {t[f'fast/{n} {what}']:.3f} ms" for n in SPLITS))
 
-    # 3. training step
+
+def training_step(dev, reps: int, amp: str, amp_dtype) -> None:
+    """Part 3: a FreDSNet training step (CE + L1, SGD) at 256x128, batch 4."""
+    from omnidl.models.fredsnet import FreDSNet
     torch.manual_seed(0)
     net = FreDSNet(backbone="resnet50", width=1.0).to(dev).train()
     opt = torch.optim.SGD(net.parameters(), lr=1e-4)
@@ -120,10 +171,10 @@ def main(argv=None) -> None:
     lab = torch.randint(0, 14, (4, 128, 256), device=dev)
     depth = torch.rand(4, 1, 128, 256, device=dev) * 5
 
-    def step(amp):
+    def step(amp_dt):
         def run():
             opt.zero_grad(set_to_none=True)
-            with torch.autocast("cuda", dtype=amp or torch.float32, enabled=amp is not None):
+            with torch.autocast("cuda", dtype=amp_dt or torch.float32, enabled=amp_dt is not None):
                 out = net(xb)
                 loss = F.cross_entropy(out["semantic"].float(), lab) + F.l1_loss(out["depth"].float(), depth)
             loss.backward()
@@ -131,11 +182,71 @@ def main(argv=None) -> None:
         return run
     jobs = {"step fp32": step(None)}
     if amp_dtype is not None and amp_dtype == torch.bfloat16:  # fp16 would need a GradScaler
-        jobs[f"step {a.amp}"] = step(amp_dtype)
-    t = _cuda_times(jobs, max(5, a.reps // 2))
+        jobs[f"step {amp}"] = step(amp_dtype)
+    t = _cuda_times(jobs, max(5, reps // 2))
     for k, ms in t.items():
         print(f"FreDSNet training {k} 256x128 B4: {ms:.1f} ms ({4e3 / ms:.0f} images/s)")
 
 
+def profile(dev, path: str) -> None:
+    """The CUDA-time table of one FreDSNet forward at 512x256 (after warm-up), written to ``path``."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as prof
+
+    from omnidl.models.fredsnet import FreDSNet
+    net = FreDSNet(backbone="resnet50", width=1.0).to(dev).eval()
+    x = torch.rand(1, 3, 256, 512, device=dev)
+    with torch.no_grad():
+        for _ in range(3):
+            net(x)
+        torch.cuda.synchronize()
+        with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
+            net(x)
+            torch.cuda.synchronize()
+    text = "FreDSNet forward 512x256 B1 fp32\n" + p.key_averages().table(sort_by="cuda_time_total", row_limit=40)
+    from omnidl.cameras import Equirectangular
+    from omnidl.nn import ProjectedConv2d
+    conv = ProjectedConv2d(256, 256, 3, padding=1, camera=Equirectangular(width=128, height=64)).to(dev)
+    xg = torch.randn(1, 256, 64, 128, device=dev, requires_grad=True)
+    for _ in range(3):
+        conv(xg).sum().backward()
+    torch.cuda.synchronize()
+    with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
+        conv(xg).sum().backward()
+        torch.cuda.synchronize()
+    text += "\n\nProjectedConv2d 256ch 64x128 forward+backward\n" + p.key_averages().table(
+        sort_by="cuda_time_total", row_limit=25)
+    Path(path).write_text(text)
+    print(f"# profile written: {path}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--reps", type=int, default=20)
+    ap.add_argument("--amp", default="bf16", choices=["bf16", "fp16", "none"])
+    ap.add_argument("--profile", default=None, help="write one FreDSNet forward's CUDA-time table here")
+    a = ap.parse_args(argv)
+    if not torch.cuda.is_available():
+        print("no CUDA device: benchmarks/gpu.py measured nothing (the GPU items are untested here)")
+        return 0
+    dev = torch.device(a.device)
+    torch.backends.cudnn.benchmark = True
+    amp_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "none": None}[a.amp]
+    print(f"# {torch.cuda.get_device_name(dev)}, torch {torch.__version__}, median of {a.reps} interleaved reps")
+    parts = [lambda: fredsnet_fps(dev, a.reps, a.amp, amp_dtype), lambda: projected_conv(dev, a.reps),
+             lambda: training_step(dev, a.reps, a.amp, amp_dtype)]
+    if a.profile:
+        parts.append(lambda: profile(dev, a.profile))
+    failed = 0
+    for part in parts:
+        try:
+            part()
+        except Exception:  # noqa: BLE001 -- one part's failure must not hide the others' figures
+            failed += 1
+            traceback.print_exc()
+    return 1 if failed else 0
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
