@@ -54,6 +54,18 @@ def test_model_autocast_cuda(name, dt):
     assert not bad, f"{name}: non-finite gradients under {dt} autocast: {bad[:5]}"
 
 
+def _cpu_and_cuda_eval(model, x):
+    """``model(x)`` without autograd on the CPU, then on CUDA with TF32 off (both float32 arithmetic)."""
+    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        with torch.no_grad():
+            ref = model(x)
+            return ref, model.to(CUDA)(x.to(CUDA))
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
+
+
 @pytest.mark.parametrize("name", list_models())
 def test_model_eval_float32_cuda_matches_cpu(name):
     """Eval float32: the CPU takes its fast inference paths (native kernels, Winograd, fused epilogues), CUDA the
@@ -63,14 +75,7 @@ def test_model_eval_float32_cuda_matches_cpu(name):
     model = create_model(name, **cfg["kwargs"]).eval()
     h, w = cfg["size"]
     x = torch.rand(1, 3, h, w)
-    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
-    try:
-        with torch.no_grad():
-            ref = model(x)
-            out = model.to(CUDA)(x.to(CUDA))
-    finally:
-        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
+    ref, out = _cpu_and_cuda_eval(model, x)
     for k, v in ref.items():
         if isinstance(v, torch.Tensor) and v.is_floating_point():
             scale = float(v.abs().max()) + 1e-6
@@ -82,14 +87,7 @@ def test_fredsnet_resnet50_eval_cuda_matches_cpu():
     torch.manual_seed(0)
     model = create_model("fredsnet", backbone="resnet50", width=1.0).eval()
     x = torch.rand(1, 3, 128, 256)
-    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
-    try:
-        with torch.no_grad():
-            ref = model(x)
-            out = model.to(CUDA)(x.to(CUDA))
-    finally:
-        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
+    ref, out = _cpu_and_cuda_eval(model, x)
     for k in ("depth", "semantic"):
         scale = float(ref[k].abs().max())
         torch.testing.assert_close(out[k].cpu(), ref[k], rtol=1e-4, atol=1e-4 * scale, msg=k)
