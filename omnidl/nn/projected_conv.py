@@ -136,7 +136,7 @@ class ProjectedConv2d(nn.Conv2d):
             about ``sampling.CHUNK_BYTES`` of columns per chunk; on CPU float32 ``None`` runs the tiled
             oneDNN path of :mod:`omnidl.nn.tiled` instead of the GEMM).
 
-    Input ``(B, C, H, W)``; output ``(B, Cout, Ho, Wo)`` (channels-last strides on the fast path).
+    Input ``(B, C, H, W)``; output ``(B, Cout, Ho, Wo)`` (channels-last strides on the CPU's fast path).
     Under autocast, or with float16/bfloat16 tensors, the fast backend computes in float32 and returns the
     autocast dtype (or the input's): its sparse transposes have no half-precision kernels.
     """
