@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .offsets import Pair
+from .padding import pad_panorama
 from .sampling import sample_positions
 
 #: channels per ``grid_sample`` image (:func:`grid_conv2d`; the channels are split into groups of their gcd with it)
@@ -65,7 +66,9 @@ def build_grid_plan(offsets: Tensor, mask: Tensor | None, in_hw: Pair, kernel_si
     y, x = sample_positions(offsets.double(), in_hw, kernel_size, stride, padding, dilation)   # (Ho, Wo, K) each
     Ho, Wo, K = y.shape
     m = None if mask is None else mask[0].double().permute(1, 2, 0)                           # (Ho, Wo, K)
-    live = torch.isfinite(x) & torch.isfinite(y) if m is None else (m != 0) & torch.isfinite(x) & torch.isfinite(y)
+    live = torch.isfinite(x) & torch.isfinite(y)
+    if m is not None:
+        live &= m != 0
     pad = 0
     if wrap and bool(live.any()):
         xs = x[live]
@@ -96,7 +99,7 @@ def grid_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: GridPlan) 
                          f"{K} taps (groups=1 only)")
     Ho, Wo = plan.out_hw
     if plan.pad:
-        x = torch.cat([x[..., -plan.pad:], x, x[..., :plan.pad]], -1)
+        x = pad_panorama(x, plan.pad)
     grid = plan.grid if plan.grid.dtype == x.dtype else plan.grid.to(x.dtype)
     # grid_sample runs one thread per sample and loops over the channels: groups of ``g`` channels as images of
     # their own give it C/g times the threads (the same memory: (B*C/g, g, .) is (B, C, .))

@@ -62,32 +62,29 @@ def get_offsets(key: tuple, device: torch.device, dtype: torch.dtype) -> tuple[T
     return hit
 
 
-def get_plan(key: tuple, device: torch.device, dtype: torch.dtype) -> SamplingPlan:
-    """Cached :class:`SamplingPlan` of a geometry key, built once per device/dtype."""
+def _per_device(table: dict, key: tuple, device: torch.device, dtype: torch.dtype, build):
+    """``table``'s entry for a geometry key on ``device``/``dtype``, made once by ``build(offsets, mask, in_hw, k, s,
+    p, d, wrap=)`` (float64; ``None``: does not apply) and moved there."""
     full = key + (str(device), dtype)
     with _LOCK:
-        hit = _PLANS.get(full)
-    if hit is None:
-        off, mask = _geometry(key)
-        _, in_hw, k, s, p, d, wrap, _, _ = key
-        hit = build_plan(off, mask, in_hw, k, s, p, d, wrap=wrap).to(device=device, dtype=dtype)
-        with _LOCK:
-            hit = _PLANS.setdefault(full, hit)
-    return hit
+        if full in table:
+            return table[full]
+    off, mask = _geometry(key)
+    _, in_hw, k, s, p, d, wrap, _, _ = key
+    hit = build(off, mask, in_hw, k, s, p, d, wrap=wrap)
+    hit = None if hit is None else hit.to(device=device, dtype=dtype)
+    with _LOCK:
+        return table.setdefault(full, hit)
+
+
+def get_plan(key: tuple, device: torch.device, dtype: torch.dtype) -> SamplingPlan:
+    """Cached :class:`SamplingPlan` of a geometry key, built once per device/dtype."""
+    return _per_device(_PLANS, key, device, dtype, build_plan)
 
 
 def get_grid_plan(key: tuple, device: torch.device, dtype: torch.dtype) -> grid_conv.GridPlan | None:
     """Cached :class:`~omnidl.nn.grid_conv.GridPlan` of a geometry key (``None``: the grid path does not apply)."""
-    full = key + (str(device), dtype)
-    with _LOCK:
-        if full in _GRID_PLANS:
-            return _GRID_PLANS[full]
-    off, mask = _geometry(key)
-    _, in_hw, k, s, p, d, wrap, _, _ = key
-    hit = grid_conv.build_grid_plan(off, mask, in_hw, k, s, p, d, wrap=wrap)
-    hit = None if hit is None else hit.to(device=device, dtype=dtype)
-    with _LOCK:
-        return _GRID_PLANS.setdefault(full, hit)
+    return _per_device(_GRID_PLANS, key, device, dtype, grid_conv.build_grid_plan)
 
 
 def clear_plan_cache() -> None:
