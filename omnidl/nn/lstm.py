@@ -35,9 +35,14 @@ def lstm_supported(lstm: nn.Module, x: Tensor) -> bool:
     params = lstm._flat_weights
     if any(p.dtype != torch.float32 or p.device.type != "cpu" for p in params):
         return False
-    if torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params)):
+    if _records_grad(lstm, x):
         return False
     return native.library() is not None
+
+
+def _records_grad(lstm: nn.LSTM, x: Tensor) -> bool:
+    """Whether ``lstm(x)`` would record a gradient (of the input or of a weight)."""
+    return torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in lstm._flat_weights))
 
 
 _LOCK = threading.Lock()
@@ -90,8 +95,7 @@ def lstm_forward(lstm: nn.LSTM, x: Tensor, hx: tuple[Tensor, Tensor] | None = No
     """``lstm(x, hx)``: ``x (S, 1, In)`` (``(1, S, In)`` with ``batch_first``) -> ``(out (S, 1, D*H), (h_n, c_n)
     (L*D, 1, H) each)``; on the native recurrence where :func:`lstm_supported`, else ``lstm(x, hx)`` itself."""
     if not lstm_supported(lstm, x):
-        if x.is_cuda and not lstm.training and torch.is_grad_enabled() and (
-                x.requires_grad or any(p.requires_grad for p in lstm._flat_weights)):
+        if x.is_cuda and not lstm.training and _records_grad(lstm, x):
             with torch.backends.cudnn.flags(enabled=False):
                 return lstm(x, hx)
         return lstm(x, hx)
