@@ -1,14 +1,15 @@
 """GPU speed (issue 17, item 8): FreDSNet fps, ProjectedConv2d vs cuDNN conv2d, a training step.
 
-    python benchmarks/gpu.py [--device cuda] [--reps 20] [--amp bf16|fp16|none] [--profile FILE]
+    python benchmarks/gpu.py [--device cuda] [--reps 20] [--amp bf16|fp16|none] [--profile FILE] [--only fps,conv,train]
 
 * FreDSNet (ResNet-50, width 1) forward at 512x256, batch 1, eval + no_grad, float32 and under autocast:
   frames per second (target >= 100 fps on an H100/H200-class GPU; the thesis reports 33 fps on an RTX 3090),
   as a ratio to torchvision's ResNet-50 forward at the same size in the same run; also replayed from a CUDA
   graph (batch-1 inference is launch-bound: the graph removes the per-kernel launch gaps);
-* ``ProjectedConv2d`` (fast backend: :mod:`omnidl.nn.grid_conv` on CUDA) forward and forward+backward vs
-  ``nn.Conv2d`` (cuDNN, TF32 as PyTorch's default, and without TF32) at 64 ch 128x256 and 256 ch 64x128, batch 1
-  (target <= 1.5x), with an A/B of ``grid_conv.SAMPLE_CHANNELS``;
+* ``ProjectedConv2d`` (fast backend: the fused Triton kernels of :mod:`omnidl.nn.triton_conv` on CUDA) forward and
+  forward+backward vs ``nn.Conv2d`` (cuDNN, TF32 as PyTorch's default, and without TF32) at 64 ch 128x256 and 256 ch
+  64x128, batch 1 (target <= 1.5x), beside the ``grid_sample`` backend (:mod:`omnidl.nn.grid_conv`) and other block
+  sizes of the kernels;
 * a FreDSNet training step (CE + L1, zero_grad + forward + backward + SGD step) at 256x128, batch 4.
 
 Times are CUDA-event medians after warm-up (plans, cuDNN autotuning), interleaved per repetition. Each part
@@ -109,11 +110,23 @@ def fredsnet_fps(dev, reps: int, amp: str, amp_dtype) -> None:
                   f"(target >= 100 fps: {'met' if 1e3 / ms >= 100 else 'MISSED'})")
 
 
+# block-size candidates of the fused kernels (omnidl.nn.triton_conv.TUNE) timed beside its own choice
+FWD_CONFIGS = {"p64 n64 c32 w4": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=32, num_warps=4, num_stages=2),
+               "p64 n128 c32 w4": dict(BLOCK_P=64, BLOCK_N=128, BLOCK_C=32, num_warps=4, num_stages=2),
+               "p128 n64 c32 w4": dict(BLOCK_P=128, BLOCK_N=64, BLOCK_C=32, num_warps=4, num_stages=2),
+               "p128 n128 c32 w8": dict(BLOCK_P=128, BLOCK_N=128, BLOCK_C=32, num_warps=8, num_stages=2),
+               "p64 n64 c64 w4 s3": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=64, num_warps=4, num_stages=3)}
+BWD_CONFIGS = {"gcols p128 c64 n32": {"gcols": dict(BLOCK_P=128, BLOCK_C=64, BLOCK_N=32, num_warps=4, num_stages=2)},
+               "sell c32": {"sell": dict(BLOCK_C=32, num_warps=4)},
+               "sell c128 w8": {"sell": dict(BLOCK_C=128, num_warps=8)},
+               "wgrad r32 w4": {"wgrad": dict(BLOCK_R=32, BLOCK_C=64, BLOCK_N=64, num_warps=4, num_stages=2)},
+               "wgrad r64 c32 n32": {"wgrad": dict(BLOCK_R=64, BLOCK_C=32, BLOCK_N=32, num_warps=4, num_stages=2)}}
+
+
 def projected_conv(dev, reps: int) -> None:
     """Part 2: ProjectedConv2d (fast backend) vs cuDNN conv2d, forward and forward+backward."""
     from omnidl.cameras import Equirectangular
-    from omnidl.nn import ProjectedConv2d, grid_conv
-    SPLITS = (1, 4, 32, 1 << 20)          # 1 << 20: no split (one image of C channels)
+    from omnidl.nn import ProjectedConv2d, triton_conv
     for C, H, W in ((64, 128, 256), (256, 64, 128)):
         torch.manual_seed(0)
         fast = ProjectedConv2d(C, C, 3, padding=1, camera=Equirectangular(width=W, height=H)).to(dev)
@@ -121,6 +134,10 @@ def projected_conv(dev, reps: int) -> None:
         conv.load_state_dict(fast.state_dict())
         xi = torch.randn(1, C, H, W, device=dev)
         xg = xi.clone().requires_grad_(True)
+        backend = "triton_conv" if triton_conv.applies(xi, fast.weight) else "grid_conv"
+        keep_enabled, triton_conv.ENABLED = triton_conv.ENABLED, True
+        fused = triton_conv.applies(xi, fast.weight)      # the fused kernels compile and pass their self-check here
+        triton_conv.ENABLED = keep_enabled
 
         def f(m):
             def run():
@@ -134,31 +151,41 @@ def projected_conv(dev, reps: int) -> None:
                 m.zero_grad(set_to_none=True)
                 m(xg).sum().backward()
             return run
-        def exact(fn):                  # cuDNN without TF32: float32 arithmetic, as the fast backend's products
+
+        def exact(fn):                  # cuDNN without TF32
             def run():
                 with torch.backends.cudnn.flags(enabled=True, benchmark=True, deterministic=False, allow_tf32=False):
                     fn()
             return run
 
-        def split(fn, n):               # grid_conv's channels per grid_sample image (A/B of SAMPLE_CHANNELS)
+        def backend_set(fn, enabled, tune=None):   # the fused Triton kernels on/off, with block sizes ``tune``
             def run():
-                keep, grid_conv.SAMPLE_CHANNELS = grid_conv.SAMPLE_CHANNELS, n
+                keep = triton_conv.ENABLED, triton_conv.TUNE
+                triton_conv.ENABLED, triton_conv.TUNE = enabled, tune or {}
                 try:
                     fn()
                 finally:
-                    grid_conv.SAMPLE_CHANNELS = keep
+                    triton_conv.ENABLED, triton_conv.TUNE = keep
             return run
-        t = _cuda_times({"fast fwd": f(fast), "conv fwd": f(conv), "fast fwdbwd": fb(fast), "conv fwdbwd": fb(conv),
-                         "conv32 fwd": exact(f(conv)), "conv32 fwdbwd": exact(fb(conv)),
-                         **{f"fast/{n} {w}": split(job(fast), n)
-                            for n in SPLITS for w, job in (("fwd", f), ("fwdbwd", fb))}}, reps)
+        jobs = {"fast fwd": f(fast), "conv fwd": f(conv), "fast fwdbwd": fb(fast), "conv fwdbwd": fb(conv),
+                "conv32 fwd": exact(f(conv)), "conv32 fwdbwd": exact(fb(conv)),
+                "grid fwd": backend_set(f(fast), False), "grid fwdbwd": backend_set(fb(fast), False)}
+        if fused:
+            jobs.update({"triton fwd": backend_set(f(fast), True), "triton fwdbwd": backend_set(fb(fast), True)})
+            jobs.update({f"tune fwd {k}": backend_set(f(fast), True, {"fwd": v}) for k, v in FWD_CONFIGS.items()})
+            jobs.update({f"tune fwdbwd {k}": backend_set(fb(fast), True, v) for k, v in BWD_CONFIGS.items()})
+        t = _cuda_times(jobs, reps)
         for what in ("fwd", "fwdbwd"):
             r = t[f"fast {what}"] / t[f"conv {what}"]
-            print(f"TARGET ProjectedConv2d {what} {C}ch {H}x{W} B1: {t[f'fast {what}']:.3f} ms = {r:.2f}x cuDNN "
-                  f"conv2d ({t[f'conv {what}']:.3f} ms, TF32) (target <= 1.5x: {'met' if r <= 1.5 else 'MISSED'}); "
+            print(f"TARGET ProjectedConv2d {what} {C}ch {H}x{W} B1 ({backend}): {t[f'fast {what}']:.3f} ms = {r:.2f}x "
+                  f"cuDNN conv2d ({t[f'conv {what}']:.3f} ms, TF32) (target <= 1.5x: {'met' if r <= 1.5 else 'MISSED'}); "
                   f"{t[f'fast {what}'] / t[f'conv32 {what}']:.2f}x cuDNN without TF32 ({t[f'conv32 {what}']:.3f} ms); "
-                  f"channels per grid_sample image (default {grid_conv.SAMPLE_CHANNELS}): "
-                  + ", ".join(f"{n}: {t[f'fast/{n} {what}']:.3f} ms" for n in SPLITS))
+                  f"grid_conv backend {t[f'grid {what}']:.3f} ms ({t[f'grid {what}'] / t[f'conv {what}']:.2f}x); "
+                  + (f"fused Triton backend {t[f'triton {what}']:.3f} ms ({t[f'triton {what}'] / t[f'conv {what}']:.2f}x)"
+                     if fused else "fused Triton backend: not usable here (see the warning above)"))
+            tunes = {k.split(" ", 2)[2]: v for k, v in t.items() if k.startswith(f"tune {what} ")}
+            if tunes:
+                print(f"#   block sizes, {what} {C}ch: " + ", ".join(f"{k}: {v:.3f} ms" for k, v in tunes.items()))
 
 
 def training_step(dev, reps: int, amp: str, amp_dtype) -> None:
@@ -188,22 +215,25 @@ def training_step(dev, reps: int, amp: str, amp_dtype) -> None:
         print(f"FreDSNet training {k} 256x128 B4: {ms:.1f} ms ({4e3 / ms:.0f} images/s)")
 
 
-def profile(dev, path: str) -> None:
-    """The CUDA-time table of one FreDSNet forward at 512x256 (after warm-up), written to ``path``."""
+def profile(dev, path: str, fredsnet: bool = True) -> None:
+    """The CUDA-time tables of one FreDSNet forward at 512x256 (``fredsnet``) and one ProjectedConv2d forward+backward
+    at 256 ch 64x128 (after warm-up), written to ``path``."""
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as prof
 
-    from omnidl.models.fredsnet import FreDSNet
-    net = FreDSNet(backbone="resnet50", width=1.0).to(dev).eval()
-    x = torch.rand(1, 3, 256, 512, device=dev)
-    with torch.no_grad():
-        for _ in range(3):
-            net(x)
-        torch.cuda.synchronize()
-        with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
-            net(x)
+    text = ""
+    if fredsnet:
+        from omnidl.models.fredsnet import FreDSNet
+        net = FreDSNet(backbone="resnet50", width=1.0).to(dev).eval()
+        x = torch.rand(1, 3, 256, 512, device=dev)
+        with torch.no_grad():
+            for _ in range(3):
+                net(x)
             torch.cuda.synchronize()
-    text = "FreDSNet forward 512x256 B1 fp32\n" + p.key_averages().table(sort_by="cuda_time_total", row_limit=40)
+            with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
+                net(x)
+                torch.cuda.synchronize()
+        text = "FreDSNet forward 512x256 B1 fp32\n" + p.key_averages().table(sort_by="cuda_time_total", row_limit=40)
     from omnidl.cameras import Equirectangular
     from omnidl.nn import ProjectedConv2d
     conv = ProjectedConv2d(256, 256, 3, padding=1, camera=Equirectangular(width=128, height=64)).to(dev)
@@ -216,6 +246,20 @@ def profile(dev, path: str) -> None:
         torch.cuda.synchronize()
     text += "\n\nProjectedConv2d 256ch 64x128 forward+backward\n" + p.key_averages().table(
         sort_by="cuda_time_total", row_limit=25)
+    from omnidl.nn import triton_conv
+    keep, triton_conv.ENABLED = triton_conv.ENABLED, True
+    try:
+        if triton_conv.applies(xg, conv.weight):
+            for _ in range(3):
+                conv(xg).sum().backward()
+            torch.cuda.synchronize()
+            with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
+                conv(xg).sum().backward()
+                torch.cuda.synchronize()
+            text += "\n\nthe same, fused Triton kernels\n" + p.key_averages().table(sort_by="cuda_time_total",
+                                                                                       row_limit=25)
+    finally:
+        triton_conv.ENABLED = keep
     Path(path).write_text(text)
     print(f"# profile written: {path}")
 
@@ -226,6 +270,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--amp", default="bf16", choices=["bf16", "fp16", "none"])
     ap.add_argument("--profile", default=None, help="write one FreDSNet forward's CUDA-time table here")
+    ap.add_argument("--only", default="fps,conv,train", help="parts to run: fps, conv, train (comma-separated)")
     a = ap.parse_args(argv)
     if not torch.cuda.is_available():
         print("no CUDA device: benchmarks/gpu.py measured nothing (the GPU items are untested here)")
@@ -234,10 +279,13 @@ def main(argv=None) -> int:
     torch.backends.cudnn.benchmark = True
     amp_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "none": None}[a.amp]
     print(f"# {torch.cuda.get_device_name(dev)}, torch {torch.__version__}, median of {a.reps} interleaved reps")
-    parts = [lambda: fredsnet_fps(dev, a.reps, a.amp, amp_dtype), lambda: projected_conv(dev, a.reps),
-             lambda: training_step(dev, a.reps, a.amp, amp_dtype)]
+    chosen = set(a.only.split(","))
+    parts = [part for name, part in (("fps", lambda: fredsnet_fps(dev, a.reps, a.amp, amp_dtype)),
+                                     ("conv", lambda: projected_conv(dev, a.reps)),
+                                     ("train", lambda: training_step(dev, a.reps, a.amp, amp_dtype)))
+             if name in chosen]
     if a.profile:
-        parts.append(lambda: profile(dev, a.profile))
+        parts.append(lambda: profile(dev, a.profile, fredsnet="fps" in chosen))
     failed = 0
     for part in parts:
         try:

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from omnidl.cameras.base import Camera
 from omnidl.cameras.resolve import resolve_camera
 
-from . import grid_conv, plan_columns, projected_taps
+from . import grid_conv, plan_columns, projected_taps, triton_conv
 from .fused import fused_conv2d, fused_supported
 from .offsets import Pair, compute_sampling
 from .sampling import SamplingPlan, build_plan, deform_conv2d_reference, fixed_offset_conv2d
@@ -30,6 +30,7 @@ _GEOMETRY: dict[tuple, tuple[Tensor, Tensor]] = {}  # key -> (offsets, mask), fl
 _PLANS: dict[tuple, SamplingPlan] = {}  # key + (device, dtype) -> plan
 _DEVICE_OFFSETS: dict[tuple, tuple[Tensor, Tensor]] = {}  # key + (device, dtype) -> (offsets, mask)
 _GRID_PLANS: dict[tuple, grid_conv.GridPlan | None] = {}  # key + (device, dtype) -> CUDA sampling grid (or None)
+_TRITON_PLANS: dict[tuple, triton_conv.TritonPlan] = {}  # key + (device, dtype) -> taps of the fused CUDA kernels
 
 
 def _geometry_key(camera: Camera, in_hw: Pair, kernel_size: Pair, stride: Pair, padding: Pair, dilation: Pair,
@@ -87,6 +88,11 @@ def get_grid_plan(key: tuple, device: torch.device, dtype: torch.dtype) -> grid_
     return _per_device(_GRID_PLANS, key, device, dtype, grid_conv.build_grid_plan)
 
 
+def get_triton_plan(key: tuple, device: torch.device, dtype: torch.dtype) -> triton_conv.TritonPlan:
+    """Cached :class:`~omnidl.nn.triton_conv.TritonPlan` of a geometry key."""
+    return _per_device(_TRITON_PLANS, key, device, dtype, triton_conv.build_plan)
+
+
 def clear_plan_cache() -> None:
     """Forget every cached offset map and sampling plan."""
     with _LOCK:
@@ -94,13 +100,15 @@ def clear_plan_cache() -> None:
         _PLANS.clear()
         _DEVICE_OFFSETS.clear()
         _GRID_PLANS.clear()
+        _TRITON_PLANS.clear()
 
 
 def plan_cache_info() -> dict[str, int]:
     """Number of cached geometries/plans and the bytes held by the plans and offset maps."""
     with _LOCK:
         plan_bytes = sum(p.nbytes() for p in _PLANS.values()) + sum(
-            g.grid.numel() * g.grid.element_size() for g in _GRID_PLANS.values() if g is not None)
+            g.grid.numel() * g.grid.element_size() for g in _GRID_PLANS.values() if g is not None) + sum(
+            t.nbytes() for t in _TRITON_PLANS.values())
         off_bytes = sum(o.numel() * o.element_size() + m.numel() * m.element_size()
                         for o, m in list(_GEOMETRY.values()) + list(_DEVICE_OFFSETS.values()))
         return {"geometries": len(_GEOMETRY), "plans": len(_PLANS), "device_offsets": len(_DEVICE_OFFSETS),
@@ -232,7 +240,10 @@ class ProjectedConv2d(nn.Conv2d):
         (:mod:`.fused`; a weight-heavy layer in training: gathered columns and the unfolded product,
         :mod:`.plan_columns`), else (no C compiler) oneDNN convolution of gathered tiles (:mod:`.tiled`); elsewhere, and
         whenever ``chunk_positions`` is given, the column GEMM (:func:`fixed_offset_conv2d`). On CUDA (without
-        ``chunk_positions``) one ``grid_sample`` of all taps and one product (:mod:`.grid_conv`)."""
+        ``chunk_positions``) float32 the fused Triton kernels (:mod:`.triton_conv`), else one ``grid_sample`` of all
+        taps and one product (:mod:`.grid_conv`)."""
+        if self.chunk_positions is None and triton_conv.applies(x, weight):   # CUDA float32: implicit GEMM
+            return triton_conv.triton_conv2d(x, weight, bias, get_triton_plan(key, x.device, x.dtype))
         if self.chunk_positions is None and grid_conv.applies(x):      # CUDA: one grid_sample, one product
             grid = get_grid_plan(key, x.device, x.dtype)
             if grid is not None:

@@ -77,3 +77,73 @@ def test_projected_conv_autocast_cuda(dt, channels_last):
     torch.testing.assert_close(y.float(), ref, rtol=0, atol=0.03 * float(ref.detach().abs().max()))
     y.float().sum().backward()
     assert torch.isfinite(x.grad).all()
+
+
+def _rel(a, b):
+    return float((a.detach().double() - b.detach().double()).abs().max() / b.detach().double().abs().max())
+
+
+@pytest.mark.parametrize("name", sorted(EXAMPLES))
+def test_projected_conv_fused_triton_float32_matches_deform_conv2d_cuda(name, monkeypatch):
+    """Float32 on CUDA with the fused Triton kernels on (omnidl.nn.triton_conv): forward and the three gradients
+    equal to deform_conv2d in float64 on CUDA (TF32 off: 1e-5 of the largest value)."""
+    pytest.importorskip("triton")
+    from omnidl.nn import triton_conv
+    monkeypatch.setattr(triton_conv, "ENABLED", True)
+    cam = EXAMPLES[name]
+    clear_plan_cache()
+    torch.manual_seed(0)
+    fast = ProjectedConv2d(6, 5, 3, padding=1, camera=cam, backend="fast").to(CUDA)
+    tv = ProjectedConv2d(6, 5, 3, padding=1, camera=cam, backend="torchvision").double().to(CUDA)
+    tv.load_state_dict(fast.state_dict())
+    x = torch.randn(2, 6, 24, 32, device=CUDA)
+    assert triton_conv.applies(x, fast.weight)
+    xg = x.clone().requires_grad_(True)
+    xr = x.double().requires_grad_(True)
+    with torch.backends.cudnn.flags(enabled=True, benchmark=False, deterministic=False, allow_tf32=False):
+        y = fast(xg)
+        yr = tv(xr)
+        go = torch.randn_like(y)
+        y.backward(go)
+        yr.backward(go.double())
+    assert _rel(y, yr) <= 1e-5
+    assert _rel(xg.grad, xr.grad) <= 1e-5
+    assert _rel(fast.weight.grad, tv.weight.grad) <= 1e-5
+    assert _rel(fast.bias.grad, tv.bias.grad) <= 1e-5
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("C, N, hw", [(64, 64, (32, 64)), (40, 70, (17, 35)), (3, 1, (16, 32))])
+def test_projected_conv_fused_triton_tf32_and_layouts(C, N, hw, channels_last, monkeypatch):
+    """Under PyTorch's default TF32 policy (as cuDNN's convolution) the fused kernels stay within TF32's rounding
+    of deform_conv2d; channels-last in, channels-last out; repeated backward passes are bitwise equal
+    (no atomics), also under torch.use_deterministic_algorithms."""
+    pytest.importorskip("triton")
+    from omnidl.cameras import Equirectangular
+    from omnidl.nn import triton_conv
+    monkeypatch.setattr(triton_conv, "ENABLED", True)
+    torch.manual_seed(0)
+    fast = ProjectedConv2d(C, N, 3, padding=1, camera=Equirectangular(width=hw[1], height=hw[0])).to(CUDA)
+    tv = ProjectedConv2d(C, N, 3, padding=1, camera=Equirectangular(width=hw[1], height=hw[0]),
+                         backend="torchvision").double().to(CUDA)
+    tv.load_state_dict(fast.state_dict())
+    x = torch.randn(2, C, *hw, device=CUDA)
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    xg = x.clone().requires_grad_(True)
+    assert triton_conv.applies(x, fast.weight)
+    y = fast(xg)
+    yr = tv(x.double())
+    assert y.is_contiguous(memory_format=torch.channels_last if channels_last and C > 1 else torch.contiguous_format)
+    assert _rel(y, yr) <= 5e-3
+    go = torch.randn_like(y)
+    y.backward(go)
+    g1 = (xg.grad.clone(), fast.weight.grad.clone())
+    torch.use_deterministic_algorithms(True)
+    try:
+        xg.grad = None
+        fast.zero_grad()
+        fast(xg).backward(go)
+    finally:
+        torch.use_deterministic_algorithms(False)
+    assert torch.equal(g1[0], xg.grad) and torch.equal(g1[1], fast.weight.grad)

@@ -1,0 +1,206 @@
+"""ProjectedConv2d's fused CUDA backend (:mod:`omnidl.nn.triton_conv`), its kernels run here by Triton's interpreter:
+forward and the three gradients equal to ``deform_conv2d`` with the same offsets (float64 reference; float32 to 1e-5
+of the largest value) for example cameras of every kind of plan, strides, dilations, kernels, wraps, a non-binary mask, memory
+formats, channel counts across block edges, bias or none, a frozen weight; deterministic; named errors.
+
+Triton picks its interpreter when it is imported (``TRITON_INTERPRET=1``), so the cases run in one child process
+(this file as a script) and each test reads its case's result."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from omnidl.cameras import Equirectangular, get_camera_class, list_cameras
+from omnidl.nn import ProjectedConv2d, triton_conv
+
+pytest.importorskip("triton")
+
+EXAMPLES = {f"{name}-{i}": cam for name in list_cameras() for i, cam in enumerate(get_camera_class(name).examples())}
+TOL = 1e-5
+# name -> case: camera (example name or "equirect"), image (H, W), channels (C, N), conv kwargs, batch, options
+# the kernels see a camera only through its plan: a panorama (wrap), fisheyes and catadioptric cameras with masked
+# taps, a non-central one, a pinhole (every camera: tests/nn/test_cuda.py, on a GPU)
+CAMERAS = ("equirect-0", "noncentral_pano-0", "fisheye-0", "double_sphere-0", "woodscape-0", "catadioptric-0",
+           "scaramuzza-0", "pinhole-0")
+CASES = {f"camera {name}": dict(camera=name, hw=(12, 16), ch=(5, 4), conv=dict(kernel_size=3, padding=1), batch=1)
+         for name in CAMERAS}
+CASES.update({
+    "stride 2": dict(hw=(8, 16), ch=(3, 6), conv=dict(kernel_size=3, stride=2, padding=1)),
+    "dilation 2": dict(hw=(8, 16), ch=(3, 6), conv=dict(kernel_size=3, padding=2, dilation=2)),
+    "kernel 5": dict(hw=(8, 16), ch=(3, 6), conv=dict(kernel_size=5, padding=2)),
+    "kernel 1x3": dict(hw=(8, 16), ch=(3, 6), conv=dict(kernel_size=(1, 3), padding=(0, 1))),
+    "no wrap": dict(hw=(8, 16), ch=(3, 6), conv=dict(kernel_size=3, padding=1, wrap=False)),
+    "no bias": dict(hw=(8, 16), ch=(3, 6), conv=dict(kernel_size=3, padding=1, bias=False)),
+    "soft mask": dict(hw=(8, 16), ch=(3, 4), conv=dict(kernel_size=3, padding=1), soft_mask=True),
+    "channels-last input": dict(hw=(8, 16), ch=(6, 5), conv=dict(kernel_size=3, padding=1), channels_last=True),
+    "channels-last weight": dict(hw=(8, 16), ch=(6, 5), conv=dict(kernel_size=3, padding=1), weight_cl=True),
+    "channels across blocks": dict(hw=(8, 16), ch=(40, 70), conv=dict(kernel_size=3, padding=1), batch=1),
+    "channels across blocks, channels-last": dict(hw=(8, 16), ch=(40, 70), conv=dict(kernel_size=3, padding=1),
+                                                  batch=1, channels_last=True),
+    "one channel": dict(hw=(8, 16), ch=(1, 1), conv=dict(kernel_size=3, padding=1)),
+    "batch 3, expanded gradient": dict(hw=(8, 16), ch=(4, 3), conv=dict(kernel_size=3, padding=1), batch=3,
+                                       sum_backward=True),
+    "frozen weight": dict(hw=(8, 16), ch=(4, 3), conv=dict(kernel_size=3, padding=1), frozen_weight=True),
+    "deterministic": dict(hw=(8, 16), ch=(4, 3), conv=dict(kernel_size=3, padding=1), repeat=True),
+})
+
+
+def _run_case(case: dict) -> dict:
+    """Relative errors of the Triton kernels against deform_conv2d (float64) for one case (in the child)."""
+    from omnidl.nn.projected_conv import _geometry
+    from omnidl.nn.sampling import deform_conv2d_reference
+    torch.manual_seed(0)
+    cam = EXAMPLES[case["camera"]] if "camera" in case else Equirectangular(width=case["hw"][1], height=case["hw"][0])
+    H, W = case["hw"]
+    cam = cam.resized(W, H)
+    C, N = case["ch"]
+    conv = ProjectedConv2d(C, N, camera=cam, **case["conv"])
+    key = conv.geometry_key((H, W))
+    off, mask = _geometry(key)
+    if case.get("soft_mask"):
+        mask = torch.rand(mask.shape, dtype=mask.dtype) * (mask != 0)
+    _, in_hw, k, s, p, d, wrap, _, _ = key
+    plan = triton_conv.build_plan(off, mask, in_hw, k, s, p, d, wrap=wrap).to(dtype=torch.float32)
+    x = torch.randn(case.get("batch", 2), C, H, W)
+    weight = conv.weight.detach().clone()
+    bias = None if conv.bias is None else conv.bias.detach().clone()
+    xt = (x.contiguous(memory_format=torch.channels_last) if case.get("channels_last") else x.clone())
+    xt.requires_grad_(True)
+    wt = (weight.contiguous(memory_format=torch.channels_last) if case.get("weight_cl") else weight.clone())
+    wt.requires_grad_(not case.get("frozen_weight"))
+    bt = None if bias is None else bias.clone().requires_grad_(True)
+    y = triton_conv.triton_conv2d(xt, wt, bt, plan)
+    x64 = x.double().requires_grad_(True)
+    w64 = weight.double().requires_grad_(True)
+    b64 = None if bias is None else bias.double().requires_grad_(True)
+    ref = deform_conv2d_reference(x64, w64, b64, off, mask, conv.stride, conv._padding_pair(), conv.dilation,
+                                  wrap=wrap)
+    go = torch.ones_like(y).expand_as(y) if case.get("sum_backward") else torch.randn_like(y)
+    if case.get("sum_backward"):
+        y.sum().backward()
+    else:
+        y.backward(go)
+    ref.backward(go.double())
+
+    def rel(a, b):
+        return float((a.double() - b).abs().max() / b.abs().max().clamp_min(1e-30))
+    out = {"y": rel(y.detach(), ref.detach()), "gx": rel(xt.grad, x64.grad),
+           "gw": None if wt.grad is None else rel(wt.grad, w64.grad),
+           "gb": None if bt is None else rel(bt.grad, b64.grad),
+           "y_channels_last": bool(y.is_contiguous(memory_format=torch.channels_last) and not y.is_contiguous()),
+           "gx_strides_like_x": xt.grad.stride() == xt.stride(), "shape_ok": tuple(y.shape) == tuple(ref.shape)}
+    if case.get("repeat"):
+        gx1, gw1 = xt.grad.clone(), wt.grad.clone()
+        xt.grad = wt.grad = None
+        triton_conv.triton_conv2d(xt, wt, bt, plan).backward(go)
+        out["bitwise_repeat"] = bool(torch.equal(gx1, xt.grad) and torch.equal(gw1, wt.grad))
+    return out
+
+
+@pytest.fixture(scope="module")
+def interpreted() -> dict:
+    env = dict(os.environ, TRITON_INTERPRET="1")
+    proc = subprocess.run([sys.executable, __file__], env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_interpreted_kernels_equal_deform_conv2d(interpreted, name):
+    r = interpreted[name]
+    assert "error" not in r, r.get("error")
+    assert r["shape_ok"]
+    for grad in ("y", "gx", "gw", "gb"):
+        assert r[grad] is None or r[grad] <= TOL, (grad, r)
+    case = CASES[name]
+    assert r["y_channels_last"] == bool(case.get("channels_last"))
+    assert r["gx_strides_like_x"]
+    assert (r["gw"] is None) == bool(case.get("frozen_weight"))
+    assert (r["gb"] is None) == (case["conv"].get("bias") is False)
+    if case.get("repeat"):
+        assert r["bitwise_repeat"]
+
+
+def test_the_self_check_passes_in_the_interpreter(interpreted):
+    assert interpreted["self check"] <= 1e-5
+
+
+@pytest.mark.parametrize("outcome, usable", [(1e-7, True), (0.5, False), (RuntimeError("no compiler"), False)])
+def test_a_failed_self_check_warns_once_and_turns_the_kernels_off(monkeypatch, outcome, usable):
+    def check(device):
+        if isinstance(outcome, Exception):
+            raise outcome
+        return outcome
+    monkeypatch.setattr(triton_conv, "_self_check", check)
+    monkeypatch.setattr(triton_conv, "_USABLE", {})
+    dev = torch.device("meta")
+    if usable:
+        assert triton_conv.usable(dev)
+    else:
+        with pytest.warns(RuntimeWarning, match="failed their self-check on meta"):
+            assert not triton_conv.usable(dev)
+    monkeypatch.setattr(triton_conv, "_self_check", lambda device: pytest.fail("checked twice"))
+    assert triton_conv.usable(dev) is usable
+
+
+def test_it_applies_to_cuda_float32_only(monkeypatch):
+    w = torch.randn(4, 3, 3, 3)
+    assert not triton_conv.applies(torch.randn(1, 3, 8, 16), w)              # CPU
+    monkeypatch.setattr(triton_conv, "ENABLED", False)
+    assert not triton_conv.applies(torch.randn(1, 3, 8, 16), w)
+
+
+def test_cpu_tensors_without_the_interpreter_are_a_named_error():
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        pytest.skip("the interpreter is on in this process")
+    conv = ProjectedConv2d(3, 4, 3, padding=1, camera=Equirectangular(width=16, height=8))
+    off, mask = conv.offsets((8, 16))
+    plan = triton_conv.build_plan(off, mask, (8, 16), (3, 3), (1, 1), (1, 1), (1, 1), wrap=True).to(dtype=torch.float32)
+    with pytest.raises(RuntimeError, match="TRITON_INTERPRET=1"):
+        triton_conv.triton_conv2d(torch.randn(1, 3, 8, 16), conv.weight, conv.bias, plan)
+
+
+def test_bad_operands_are_named_errors():
+    conv = ProjectedConv2d(2, 3, 3, padding=1, camera=Equirectangular(width=12, height=6))
+    off, mask = conv.offsets((6, 12))
+    plan = triton_conv.build_plan(off, mask, (6, 12), (3, 3), (1, 1), (1, 1), (1, 1), wrap=True).to(dtype=torch.float32)
+    with pytest.raises(ValueError, match="does not fit the plan"):
+        triton_conv.triton_conv2d(torch.randn(1, 2, 6, 10), conv.weight, conv.bias, plan)
+    with pytest.raises(ValueError, match="input channels"):
+        triton_conv.triton_conv2d(torch.randn(1, 3, 6, 12), conv.weight, conv.bias, plan)
+    with pytest.raises(TypeError, match="float32"):
+        triton_conv.triton_conv2d(torch.randn(1, 2, 6, 12, dtype=torch.float64), conv.weight.double(), None, plan)
+
+
+def test_transposed_plan_lists_every_live_corner_once():
+    """The sliced ELL transpose holds each non-zero corner weight of the plan exactly once, at its input pixel."""
+    conv = ProjectedConv2d(2, 3, 3, padding=1, camera=Equirectangular(width=40, height=20))
+    off, mask = conv.offsets((20, 40))
+    plan = triton_conv.build_plan(off, mask, (20, 40), (3, 3), (1, 1), (1, 1), (1, 1), wrap=True)
+    start, length, rows, vals = plan.transpose()
+    K, _, P = plan.idx.shape
+    dense = torch.zeros(20 * 40, P * K, dtype=torch.float64)
+    for t in range(start.numel()):
+        for e in range(int(length[t])):
+            sl = slice(int(start[t]) + e * triton_conv.TILE_Q, int(start[t]) + (e + 1) * triton_conv.TILE_Q)
+            q = t * triton_conv.TILE_Q + torch.arange(triton_conv.TILE_Q)
+            keep = q < 20 * 40
+            dense.index_put_((q[keep], rows[sl].long()[keep]), vals[sl][keep], accumulate=True)
+    expect = torch.zeros_like(dense)
+    r = torch.arange(P * K).view(P, K, 1).expand(P, K, 4).permute(1, 2, 0)
+    expect.index_put_((plan.idx.long().reshape(-1), r.reshape(-1)), plan.wt.reshape(-1), accumulate=True)
+    torch.testing.assert_close(dense, expect, rtol=0, atol=0)
+
+
+if __name__ == "__main__":          # the child process of ``interpreted``: TRITON_INTERPRET=1 set by the parent
+    results = {}
+    for name, case in CASES.items():
+        try:
+            results[name] = _run_case(case)
+        except Exception as e:  # noqa: BLE001 -- reported per case by the tests
+            results[name] = {"error": f"{type(e).__name__}: {e}"}
+    results["self check"] = triton_conv._self_check(torch.device("cpu"))
+    print(json.dumps(results))
