@@ -111,16 +111,16 @@ def fredsnet_fps(dev, reps: int, amp: str, amp_dtype) -> None:
 
 
 # block-size candidates of the fused kernels (omnidl.nn.triton_conv.TUNE) timed beside its own choice
-FWD_CONFIGS = {"p64 n64 c32 w4": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=32, num_warps=4, num_stages=2),
-               "p64 n128 c32 w4": dict(BLOCK_P=64, BLOCK_N=128, BLOCK_C=32, num_warps=4, num_stages=2),
-               "p128 n64 c32 w4": dict(BLOCK_P=128, BLOCK_N=64, BLOCK_C=32, num_warps=4, num_stages=2),
-               "p128 n128 c32 w8": dict(BLOCK_P=128, BLOCK_N=128, BLOCK_C=32, num_warps=8, num_stages=2),
-               "p64 n64 c64 w4 s3": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=64, num_warps=4, num_stages=3)}
-BWD_CONFIGS = {"gcols p128 c64 n32": {"gcols": dict(BLOCK_P=128, BLOCK_C=64, BLOCK_N=32, num_warps=4, num_stages=2)},
+FWD_CONFIGS = {"p64 n64 c16 w4": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=16, num_warps=4, num_stages=1),
+               "p64 n128 c16 w4": dict(BLOCK_P=64, BLOCK_N=128, BLOCK_C=16, num_warps=4, num_stages=1),
+               "p128 n128 c16 w8": dict(BLOCK_P=128, BLOCK_N=128, BLOCK_C=16, num_warps=8, num_stages=1),
+               "p64 n64 c32 w8": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=32, num_warps=8, num_stages=1),
+               "p128 n64 c32 w8": dict(BLOCK_P=128, BLOCK_N=64, BLOCK_C=32, num_warps=8, num_stages=1)}
+BWD_CONFIGS = {"gcols p128 c64 n32 s2": {"gcols": dict(BLOCK_P=128, BLOCK_C=64, BLOCK_N=32, num_warps=4, num_stages=2)},
+               "gcols p64 c64 n32 s3": {"gcols": dict(BLOCK_P=64, BLOCK_C=64, BLOCK_N=32, num_warps=4, num_stages=3)},
                "sell c32": {"sell": dict(BLOCK_C=32, num_warps=4)},
-               "sell c128 w8": {"sell": dict(BLOCK_C=128, num_warps=8)},
-               "wgrad r32 w4": {"wgrad": dict(BLOCK_R=32, BLOCK_C=64, BLOCK_N=64, num_warps=4, num_stages=2)},
-               "wgrad r64 c32 n32": {"wgrad": dict(BLOCK_R=64, BLOCK_C=32, BLOCK_N=32, num_warps=4, num_stages=2)}}
+               "wgrad r32 c32 n64": {"wgrad": dict(BLOCK_R=32, BLOCK_C=32, BLOCK_N=64, num_warps=4, num_stages=1)},
+               "wgrad r32 c64 n64 w8": {"wgrad": dict(BLOCK_R=32, BLOCK_C=64, BLOCK_N=64, num_warps=8, num_stages=1)}}
 
 
 def projected_conv(dev, reps: int) -> None:

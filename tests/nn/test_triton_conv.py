@@ -195,6 +195,73 @@ def test_transposed_plan_lists_every_live_corner_once():
     torch.testing.assert_close(dense, expect, rtol=0, atol=0)
 
 
+# -- the sm_90 build, without a GPU: Triton compiles for a named target and its bundled ptxas reports registers ---------
+_PTRS = {"fwd": dict(x="*fp32", w="*fp32", bias="*fp32", idx="*i32", wt="*fp32", y="*fp32"),
+         "gcols": dict(gy="*fp32", w="*fp32", out="*fp32"),
+         "sell": dict(g="*fp32", rows="*i32", vals="*fp32", tile_start="*i32", tile_len="*i32", gx="*fp32"),
+         "wgrad": dict(x="*fp32", idx="*i32", wt="*fp32", gy="*fp32", part="*fp32")}
+# integer arguments equal to 1 at a launch (Triton specialises them), per memory format of the input / gradient
+_UNIT = {("fwd", True): ("sxc", "syn"), ("fwd", False): ("sxp", "syp"), ("gcols", True): ("sgn",),
+         ("gcols", False): ("sgp",), ("sell", True): ("sgxc",), ("sell", False): ("sgxq",),
+         ("wgrad", True): ("sxc", "sgn"), ("wgrad", False): ("sxp", "sgp")}
+
+
+def sm90_build(kernel: str, channels_last: bool, cfg: dict, **constexprs) -> dict:
+    """Compile ``kernel`` with the block sizes ``cfg`` for sm_90 as a launch at channel counts divisible by 16 would
+    (pointers and sizes 16-divisible, unit strides specialised): registers, spilled bytes, shared memory."""
+    import re
+    import tempfile
+    from pathlib import Path
+
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from omnidl.nn import triton_kernels
+    fn = getattr(triton_kernels, kernel)
+    options = {k: cfg[k] for k in ("num_warps", "num_stages") if k in cfg}
+    consts = {k: v for k, v in cfg.items() if k not in options}
+    consts.update(constexprs)
+    consts.update({name: 1 for name in _UNIT[(kernel, channels_last)]})
+    if kernel in ("fwd", "wgrad"):
+        consts["CL"] = channels_last
+    if kernel != "sell":
+        consts["PREC"] = "tf32"
+    if kernel == "sell":
+        consts["BLOCK_Q"] = triton_conv.TILE_Q
+    names = fn.arg_names
+    signature = {n: _PTRS[kernel].get(n, "constexpr" if n in consts else "i32") for n in names}
+    attrs = {(i,): [["tt.divisibility", 16]] for i, n in enumerate(names) if signature[n] != "constexpr"
+             and n not in ("K", "CB", "tile_start", "tile_len")}
+    compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=consts, attrs=attrs),
+                              target=GPUTarget("cuda", 90, 32), options=options)
+    ptxas = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "ptxas"
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "k.ptx"
+        src.write_text(compiled.asm["ptx"])
+        out = subprocess.run([str(ptxas), "-v", "--gpu-name=sm_90a", str(src), "-o", str(Path(tmp) / "k.cubin")],
+                             capture_output=True, text=True, check=True).stderr
+    return {"registers": int(re.search(r"Used (\d+) registers", out).group(1)),
+            "spilled": int(re.search(r"(\d+) bytes spill stores", out).group(1)), "shared": compiled.metadata.shared}
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("kernel", ["fwd", "gcols", "sell", "wgrad"])
+@pytest.mark.parametrize("C, N, hw", [(64, 64, (128, 256)), (256, 256, (64, 128))])
+def test_default_blocks_build_for_sm90_without_register_spills(kernel, channels_last, C, N, hw):
+    """The block sizes :func:`triton_conv._config` picks for the benchmark's two layers compile for an H100/H200
+    (sm_90) with no register spills, within the 228 KB of shared memory, in no more than 255 registers."""
+    pytest.importorskip("triton.backends.nvidia")
+    x = torch.empty(1, C, *hw, device="meta")
+    cfg = triton_conv._config(kernel, x, 1, hw[0] * hw[1], C, N, 9)
+    try:
+        r = sm90_build(kernel, channels_last, cfg, **({"HAS_BIAS": True} if kernel in ("fwd", "wgrad") else {}))
+    except FileNotFoundError as e:
+        pytest.skip(f"Triton's ptxas is missing: {e}")
+    assert r["spilled"] == 0, r
+    assert r["shared"] <= 228 * 1024, r
+
+
 if __name__ == "__main__":          # the child process of ``interpreted``: TRITON_INTERPRET=1 set by the parent
     results = {}
     for name, case in CASES.items():
