@@ -238,26 +238,21 @@ def profile(dev, path: str, fredsnet: bool = True) -> None:
     from omnidl.nn import ProjectedConv2d
     conv = ProjectedConv2d(256, 256, 3, padding=1, camera=Equirectangular(width=128, height=64)).to(dev)
     xg = torch.randn(1, 256, 64, 128, device=dev, requires_grad=True)
-    for _ in range(3):
-        conv(xg).sum().backward()
-    torch.cuda.synchronize()
-    with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
-        conv(xg).sum().backward()
+
+    def table(title: str) -> str:       # one forward+backward after 3 warm-ups
+        for _ in range(3):
+            conv(xg).sum().backward()
         torch.cuda.synchronize()
-    text += "\n\nProjectedConv2d 256ch 64x128 forward+backward\n" + p.key_averages().table(
-        sort_by="cuda_time_total", row_limit=25)
+        with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
+            conv(xg).sum().backward()
+            torch.cuda.synchronize()
+        return f"\n\n{title}\n" + p.key_averages().table(sort_by="cuda_time_total", row_limit=25)
+    text += table("ProjectedConv2d 256ch 64x128 forward+backward")
     from omnidl.nn import triton_conv
     keep, triton_conv.ENABLED = triton_conv.ENABLED, True
     try:
         if triton_conv.applies(xg, conv.weight):
-            for _ in range(3):
-                conv(xg).sum().backward()
-            torch.cuda.synchronize()
-            with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
-                conv(xg).sum().backward()
-                torch.cuda.synchronize()
-            text += "\n\nthe same, fused Triton kernels\n" + p.key_averages().table(sort_by="cuda_time_total",
-                                                                                       row_limit=25)
+            text += table("the same, fused Triton kernels")
     finally:
         triton_conv.ENABLED = keep
     Path(path).write_text(text)

@@ -47,6 +47,22 @@ def _gather(x, o0, o1, o2, o3, w0, w1, w2, w3, cc, mc, mp, sxc, CL: tl.constexpr
             a = tl.trans(a)
     return a
 
+
+@triton.jit
+def _corners(ib, wb, P, rows, live, sxp, base):
+    """Tap ``k``'s four corners at positions ``rows`` (``ib``/``wb``: the tap's ``(4, P)`` block of ``idx``/``wt``):
+    pixel offsets ``base + idx * sxp`` and weights (0 where not ``live``)."""
+    o0 = base + tl.load(ib + rows, mask=live, other=0) * sxp
+    o1 = base + tl.load(ib + P + rows, mask=live, other=0) * sxp
+    o2 = base + tl.load(ib + 2 * P + rows, mask=live, other=0) * sxp
+    o3 = base + tl.load(ib + 3 * P + rows, mask=live, other=0) * sxp
+    w0 = tl.load(wb + rows, mask=live, other=0.0)
+    w1 = tl.load(wb + P + rows, mask=live, other=0.0)
+    w2 = tl.load(wb + 2 * P + rows, mask=live, other=0.0)
+    w3 = tl.load(wb + 3 * P + rows, mask=live, other=0.0)
+    return o0, o1, o2, o3, w0, w1, w2, w3
+
+
 @triton.jit
 def fwd(x, w, bias, idx, wt, y, C, N, P, K, sxb, sxc, sxp, swn, swc, swk, syb, syn, syp,
         HAS_BIAS: tl.constexpr, CL: tl.constexpr, PREC: tl.constexpr,
@@ -61,16 +77,7 @@ def fwd(x, w, bias, idx, wt, y, C, N, P, K, sxb, sxc, sxp, swn, swc, swk, syb, s
     xb = x + b * sxb
     acc = tl.zeros((BLOCK_P, BLOCK_N), dtype=tl.float32)
     for k in range(K):
-        ib = idx + k * 4 * P + rp
-        wb = wt + k * 4 * P + rp
-        o0 = tl.load(ib, mask=mp, other=0) * sxp
-        o1 = tl.load(ib + P, mask=mp, other=0) * sxp
-        o2 = tl.load(ib + 2 * P, mask=mp, other=0) * sxp
-        o3 = tl.load(ib + 3 * P, mask=mp, other=0) * sxp
-        w0 = tl.load(wb, mask=mp, other=0.0)
-        w1 = tl.load(wb + P, mask=mp, other=0.0)
-        w2 = tl.load(wb + 2 * P, mask=mp, other=0.0)
-        w3 = tl.load(wb + 3 * P, mask=mp, other=0.0)
+        o0, o1, o2, o3, w0, w1, w2, w3 = _corners(idx + k * 4 * P, wt + k * 4 * P, P, rp, mp, sxp, 0)
         for c0 in range(0, C, BLOCK_C):
             cc = c0 + tl.arange(0, BLOCK_C)
             mc = cc < C
@@ -81,6 +88,7 @@ def fwd(x, w, bias, idx, wt, y, C, N, P, K, sxb, sxc, sxp, swn, swc, swk, syb, s
     if HAS_BIAS:
         acc += tl.load(bias + rn, mask=mn, other=0.0)[None, :]
     tl.store(y + b * syb + rp[:, None] * syp + rn[None, :] * syn, acc, mask=mp[:, None] & mn[None, :])
+
 
 @triton.jit
 def gcols(gy, w, out, C, N, P, K, sgb, sgn, sgp, swn, swc, swk, PREC: tl.constexpr,
@@ -105,6 +113,7 @@ def gcols(gy, w, out, C, N, P, K, sgb, sgn, sgp, swn, swc, swk, PREC: tl.constex
         acc = tl.dot(g, wk, acc, input_precision=PREC)
     tl.store(out + ((b * P + rp[:, None]) * K + k) * C + cc[None, :], acc, mask=mp[:, None] & mc[None, :])
 
+
 @triton.jit
 def sell(g, rows, vals, tile_start, tile_len, gx, C, Q, PKC, sgxb, sgxc, sgxq,
          BLOCK_Q: tl.constexpr, BLOCK_C: tl.constexpr):
@@ -126,6 +135,7 @@ def sell(g, rows, vals, tile_start, tile_len, gx, C, Q, PKC, sgxb, sgxc, sgxq,
                                     other=0.0)
     tl.store(gx + b * sgxb + rq[:, None] * sgxq + cc[None, :] * sgxc, acc, mask=(rq < Q)[:, None] & mc[None, :])
 
+
 @triton.jit
 def wgrad(x, idx, wt, gy, part, C, N, P, K, R, ROWS, CB, sxb, sxc, sxp, sgb, sgn, sgp,
           HAS_BIAS: tl.constexpr, CL: tl.constexpr, PREC: tl.constexpr,
@@ -146,17 +156,7 @@ def wgrad(x, idx, wt, gy, part, C, N, P, K, R, ROWS, CB, sxb, sxc, sxp, sgb, sgn
         mr = rr < R
         b = rr // P
         p = rr % P
-        ib = idx + k * 4 * P + p
-        wb = wt + k * 4 * P + p
-        xo = b * sxb
-        o0 = xo + tl.load(ib, mask=mr, other=0) * sxp
-        o1 = xo + tl.load(ib + P, mask=mr, other=0) * sxp
-        o2 = xo + tl.load(ib + 2 * P, mask=mr, other=0) * sxp
-        o3 = xo + tl.load(ib + 3 * P, mask=mr, other=0) * sxp
-        w0 = tl.load(wb, mask=mr, other=0.0)
-        w1 = tl.load(wb + P, mask=mr, other=0.0)
-        w2 = tl.load(wb + 2 * P, mask=mr, other=0.0)
-        w3 = tl.load(wb + 3 * P, mask=mr, other=0.0)
+        o0, o1, o2, o3, w0, w1, w2, w3 = _corners(idx + k * 4 * P, wt + k * 4 * P, P, p, mr, sxp, b * sxb)
         aT = _gather(x, o0, o1, o2, o3, w0, w1, w2, w3, cc, mc, mr, sxc, CL, False)      # (BLOCK_C, BLOCK_R)
         gt = tl.load(gy + b[:, None] * sgb + p[:, None] * sgp + rn[None, :] * sgn, mask=mr[:, None] & mn[None, :],
                      other=0.0)                                                       # (BLOCK_R, BLOCK_N)
