@@ -23,6 +23,7 @@ kernels do not compile or give wrong values.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 import warnings
@@ -203,8 +204,14 @@ def _pow2(n: int, lo: int, hi: int) -> int:
     return max(lo, min(hi, 1 << max(0, math.ceil(math.log2(max(1, n))))))
 
 
+@functools.lru_cache(maxsize=None)
+def _device_sms(device: torch.device) -> int:
+    return torch.cuda.get_device_properties(device).multi_processor_count
+
+
 def _sms(x: Tensor) -> int:
-    return torch.cuda.get_device_properties(x.device).multi_processor_count if x.is_cuda else 4
+    """Multiprocessors of ``x``'s GPU (4 elsewhere: the interpreter), read once per device."""
+    return _device_sms(x.device) if x.is_cuda else 4
 
 
 def _config(kernel: str, x: Tensor, B: int, P: int, C: int, N: int, K: int) -> dict:
