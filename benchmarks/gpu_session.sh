@@ -4,7 +4,9 @@
 # 1. the CUDA tests: `pytest -m cuda` over the GPU test files (every camera, ProjectedConv2d against
 #    deform_conv2d on CUDA, every model forward/backward/eval against the CPU, autocast, gyroscope, layout
 #    hooks, renderer) and the tests taking the `device` fixture with --device cuda;
-# 2. benchmarks/gpu.py (FreDSNet fps, ProjectedConv2d vs cuDNN, a training step) and a CUDA profile.
+#    then every model's CUDA tests again with ProjectedConv2d's fused Triton kernels on (OMNIDL_TRITON=1);
+# 2. benchmarks/gpu.py (FreDSNet fps, ProjectedConv2d vs cuDNN beside both CUDA backends, a training step) and a
+#    CUDA profile.
 # Logs go to OUTDIR; the last lines printed are the summary. Python packages the machine lacks travel as
 # wheels in ./.whl (git-ignored; see the device tool's notes) and are installed to /tmp/site first.
 set -u
@@ -28,6 +30,11 @@ T0=$(date +%s)
 timeout 120 python3 -m pytest -p no:cacheprovider --device cuda -k cuda -q -rfE --tb=short --timeout 60 \
     tests/engine/test_forward.py tests/nn/test_unfold_conv.py > "$OUTDIR/pytest_device.log" 2>&1
 echo "pytest --device cuda: rc=$? in $(( $(date +%s) - T0 )) s: $(tail -1 "$OUTDIR/pytest_device.log")"
+T0=$(date +%s)
+OMNIDL_TRITON=1 timeout "${GPU_TRITON_S:-150}" python3 -m pytest -p no:cacheprovider -m cuda -q -rfE --tb=short \
+    --timeout 120 tests/models/test_cuda_models.py > "$OUTDIR/pytest_cuda_triton.log" 2>&1
+echo "pytest -m cuda, models with the fused Triton kernels on (OMNIDL_TRITON=1): rc=$? in $(( $(date +%s) - T0 )) s: \
+$(tail -1 "$OUTDIR/pytest_cuda_triton.log")"
 T0=$(date +%s)
 timeout "${GPU_BENCH_S:-200}" python3 benchmarks/gpu.py --reps "${GPU_REPS:-20}" --profile "$OUTDIR/profile.txt" \
     > "$OUTDIR/gpu_bench.log" 2>&1

@@ -24,6 +24,7 @@ kernels do not compile or give wrong values.
 from __future__ import annotations
 
 import functools
+import importlib.util
 import math
 import os
 import warnings
@@ -46,12 +47,8 @@ _INT32 = 2 ** 31 - 1
 
 
 def available() -> bool:
-    """Whether Triton can be imported."""
-    try:
-        import triton  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    """Whether Triton is installed (found, not imported: importing it costs every CPU user start-up time)."""
+    return importlib.util.find_spec("triton") is not None
 
 
 _AVAILABLE = available()
@@ -91,10 +88,13 @@ class TritonPlan:
         """The plan's transpose in sliced ELL form: for tiles of :data:`TILE_Q` input pixels, ``start (T,)`` and
         ``length (T,)`` (int32; the tile's longest entry list), and ``rows``/``vals`` (int32/float): entry ``e`` of
         pixel ``q`` of tile ``t`` at ``start[t] + e * TILE_Q + q % TILE_Q``, naming row ``p * K + k`` of the columns'
-        gradient and its weight (padding: row 0, weight 0). Entries keep the plan's order (deterministic sums)."""
+        gradient and its weight (padding: row 0, weight 0). Entries keep the plan's order (deterministic sums). Built
+        on the CPU (``bincount`` has no deterministic CUDA kernel) and moved to the plan's device."""
         hit = self.cache.get("transpose")
         if hit is None:
-            hit = self.cache["transpose"] = _sliced_ell(self)
+            dev = self.idx.device
+            built = _sliced_ell(TritonPlan(self.idx.cpu(), self.wt.cpu(), self.in_hw, self.out_hw, self.kernel_size))
+            hit = self.cache["transpose"] = tuple(t.to(dev) for t in built)
         return hit
 
 

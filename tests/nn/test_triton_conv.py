@@ -108,6 +108,7 @@ def interpreted() -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_interpreted_kernels_equal_deform_conv2d(interpreted, name):
     r = interpreted[name]
@@ -124,6 +125,7 @@ def test_interpreted_kernels_equal_deform_conv2d(interpreted, name):
         assert r["bitwise_repeat"]
 
 
+@pytest.mark.slow
 def test_the_self_check_passes_in_the_interpreter(interpreted):
     assert interpreted["self check"] <= 1e-5
 
