@@ -177,26 +177,6 @@ def test_bad_operands_are_named_errors():
         triton_conv.triton_conv2d(torch.randn(1, 2, 6, 12, dtype=torch.float64), conv.weight.double(), None, plan)
 
 
-def test_transposed_plan_lists_every_live_corner_once():
-    """The sliced ELL transpose holds each non-zero corner weight of the plan exactly once, at its input pixel."""
-    conv = ProjectedConv2d(2, 3, 3, padding=1, camera=Equirectangular(width=40, height=20))
-    off, mask = conv.offsets((20, 40))
-    plan = triton_conv.build_plan(off, mask, (20, 40), (3, 3), (1, 1), (1, 1), (1, 1), wrap=True)
-    start, length, rows, vals = plan.transpose()
-    K, _, P = plan.idx.shape
-    dense = torch.zeros(20 * 40, P * K, dtype=torch.float64)
-    for t in range(start.numel()):
-        for e in range(int(length[t])):
-            sl = slice(int(start[t]) + e * triton_conv.TILE_Q, int(start[t]) + (e + 1) * triton_conv.TILE_Q)
-            q = t * triton_conv.TILE_Q + torch.arange(triton_conv.TILE_Q)
-            keep = q < 20 * 40
-            dense.index_put_((q[keep], rows[sl].long()[keep]), vals[sl][keep], accumulate=True)
-    expect = torch.zeros_like(dense)
-    r = torch.arange(P * K).view(P, K, 1).expand(P, K, 4).permute(1, 2, 0)
-    expect.index_put_((plan.idx.long().reshape(-1), r.reshape(-1)), plan.wt.reshape(-1), accumulate=True)
-    torch.testing.assert_close(dense, expect, rtol=0, atol=0)
-
-
 # -- the sm_90 build, without a GPU: Triton compiles for a named target and its bundled ptxas reports registers ---------
 _PTRS = {"fwd": dict(x="*fp32", w="*fp32", bias="*fp32", idx="*i32", wt="*fp32", y="*fp32"),
          "gcols": dict(gy="*fp32", w="*fp32", out="*fp32"),
