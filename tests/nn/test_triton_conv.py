@@ -188,9 +188,10 @@ _UNIT = {("fwd", True): ("sxc", "syn"), ("fwd", False): ("sxp", "syp"), ("gcols"
          ("wgrad", True): ("sxc", "sgn"), ("wgrad", False): ("sxp", "sgp")}
 
 
-def sm90_build(kernel: str, channels_last: bool, cfg: dict, **constexprs) -> dict:
-    """Compile ``kernel`` with the block sizes ``cfg`` for sm_90 as a launch at channel counts divisible by 16 would
-    (pointers and sizes 16-divisible, unit strides specialised): registers, spilled bytes, shared memory."""
+def sm90_build(kernel: str, channels_last: bool, cfg: dict, prec: str = "tf32", **constexprs) -> dict:
+    """Compile ``kernel`` with the block sizes ``cfg`` and products in ``prec`` for sm_90 as a launch at channel counts
+    divisible by 16 would (pointers and sizes 16-divisible, unit strides specialised): registers, spilled bytes,
+    shared memory."""
     import re
     import tempfile
     from pathlib import Path
@@ -208,7 +209,7 @@ def sm90_build(kernel: str, channels_last: bool, cfg: dict, **constexprs) -> dic
     if kernel in ("fwd", "wgrad"):
         consts["CL"] = channels_last
     if kernel != "sell":
-        consts["PREC"] = "tf32"
+        consts["PREC"] = prec
     if kernel == "sell":
         consts["BLOCK_Q"] = triton_conv.TILE_Q
     names = fn.arg_names
@@ -242,6 +243,18 @@ def test_default_blocks_build_for_sm90_without_register_spills(kernel, channels_
         pytest.skip(f"Triton's ptxas is missing: {e}")
     assert r["spilled"] == 0, r
     assert r["shared"] <= 228 * 1024, r
+
+
+@pytest.mark.parametrize("kernel", ["fwd", "gcols", "wgrad"])
+def test_float32_products_build_for_sm90(kernel):
+    """With TF32 off (``torch.backends.cudnn.allow_tf32 = False``, and the self-check) the products are exact float32
+    ``tl.dot``: they compile for sm_90 too (a few spilled bytes are allowed: this is the slow, exact mode)."""
+    pytest.importorskip("triton.backends.nvidia")
+    x = torch.empty(1, 64, 8, 16, device="meta")
+    for channels_last in (False, True):
+        cfg = triton_conv._config(kernel, x, 1, 128, 64, 64, 9)
+        r = sm90_build(kernel, channels_last, cfg, "ieee", **({"HAS_BIAS": True} if kernel != "gcols" else {}))
+        assert r["shared"] <= 228 * 1024, r
 
 
 if __name__ == "__main__":          # the child process of ``interpreted``: TRITON_INTERPRET=1 set by the parent
