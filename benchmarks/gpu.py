@@ -127,6 +127,7 @@ def projected_conv(dev, reps: int) -> None:
     """Part 2: ProjectedConv2d (fast backend) vs cuDNN conv2d, forward and forward+backward."""
     from omnidl.cameras import Equirectangular
     from omnidl.nn import ProjectedConv2d, triton_conv
+    fused_vs_grid = {}
     for C, H, W in ((64, 128, 256), (256, 64, 128)):
         torch.manual_seed(0)
         fast = ProjectedConv2d(C, C, 3, padding=1, camera=Equirectangular(width=W, height=H)).to(dev)
@@ -183,9 +184,16 @@ def projected_conv(dev, reps: int) -> None:
                   f"grid_conv backend {t[f'grid {what}']:.3f} ms ({t[f'grid {what}'] / t[f'conv {what}']:.2f}x); "
                   + (f"fused Triton backend {t[f'triton {what}']:.3f} ms ({t[f'triton {what}'] / t[f'conv {what}']:.2f}x)"
                      if fused else "fused Triton backend: not usable here (see the warning above)"))
+            if fused:
+                fused_vs_grid[f"{what} {C}ch"] = t[f"triton {what}"] / t[f"grid {what}"]
             tunes = {k.split(" ", 2)[2]: v for k, v in t.items() if k.startswith(f"tune {what} ")}
             if tunes:
                 print(f"#   block sizes, {what} {C}ch: " + ", ".join(f"{k}: {v:.3f} ms" for k, v in tunes.items()))
+    if fused_vs_grid:
+        faster = all(r < 1 for r in fused_vs_grid.values())
+        print("# fused Triton kernels / grid_conv: " + ", ".join(f"{k} {r:.2f}x" for k, r in fused_vs_grid.items())
+              + (": faster everywhere, triton_conv.ENABLED can default to on" if faster
+                 else ": not faster everywhere, keep triton_conv.ENABLED off by default"))
 
 
 def training_step(dev, reps: int, amp: str, amp_dtype) -> None:
