@@ -30,6 +30,7 @@ import os
 import warnings
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from .triton_plan import TILE_Q, TritonPlan, build_plan
 
@@ -52,13 +53,13 @@ _AVAILABLE = available()
 
 
 def applies(x: Tensor, weight: Tensor) -> bool:
-    """Whether :func:`triton_conv2d` runs for ``x (B, C, H, W)`` and ``weight``: a CUDA float32 input and weight, Triton
-    importable, :data:`ENABLED`, every index within int32, and the kernels passed their self-check on this device
+    """Whether :func:`triton_conv2d` runs for ``x (B, C, H, W)`` and ``weight``: a CUDA float32 input and weight, not
+    empty, Triton installed, :data:`ENABLED`, every index within int32, and the kernels passed their self-check on this device
     (:func:`usable`)."""
     if not (ENABLED and _AVAILABLE and x.is_cuda and x.dtype == torch.float32 and weight.dtype == torch.float32):
         return False
     B, C, H, W = x.shape
-    fits = x.numel() < _INT32 and B * H * W * C * weight.shape[2] * weight.shape[3] < _INT32 and \
+    fits = 0 < x.numel() < _INT32 and B * H * W * C * weight.shape[2] * weight.shape[3] < _INT32 and \
         weight.numel() * 2 < _INT32
     return fits and usable(x.device)
 
@@ -238,6 +239,7 @@ class _TritonConv(torch.autograd.Function):
         return _forward(x, weight, bias, plan)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, gy: Tensor):  # type: ignore[override]
         x, weight = ctx.saved_tensors
         gy = _pixels(gy.float())
@@ -253,7 +255,8 @@ class _TritonConv(torch.autograd.Function):
 
 def triton_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: TritonPlan) -> Tensor:
     """Convolution of ``x (B, C, H, W)`` with ``weight (Cout, C, kh, kw)`` at the taps of ``plan`` (groups = 1):
-    ``(B, Cout, Ho, Wo)``, channels-last where ``x`` is. Differentiable in ``x``, ``weight`` and ``bias``."""
+    ``(B, Cout, Ho, Wo)``, channels-last where ``x`` is. Differentiable in ``x``, ``weight`` and ``bias`` (once: the
+    backward is not itself differentiable, a second derivative raises)."""
     if x.dim() != 4 or tuple(x.shape[-2:]) != tuple(plan.in_hw):
         raise ValueError(f"triton_conv2d: input of shape {tuple(x.shape)} does not fit the plan's {plan.in_hw}")
     if weight.dim() != 4 or weight.shape[1] != x.shape[1] or weight.shape[2] * weight.shape[3] != plan.taps:
@@ -261,4 +264,4 @@ def triton_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, plan: TritonPl
                          f"channels and {plan.taps} taps (groups=1 only)")
     if x.dtype != torch.float32 or weight.dtype != torch.float32:
         raise TypeError(f"triton_conv2d computes in float32; got input {x.dtype}, weight {weight.dtype}")
-    return _TritonConv.apply(_pixels(x), _taps_weight(weight), bias, plan)
+    return _TritonConv.apply(_pixels(x), _taps_weight(weight), None if bias is None else bias.contiguous(), plan)

@@ -40,11 +40,15 @@ CASES.update({
     "channels across blocks": dict(hw=(8, 16), ch=(40, 70), conv=dict(kernel_size=3, padding=1), batch=1),
     "channels across blocks, channels-last": dict(hw=(8, 16), ch=(40, 70), conv=dict(kernel_size=3, padding=1),
                                                   batch=1, channels_last=True),
+    "channel slice of a channels-last map": dict(hw=(8, 16), ch=(5, 4), conv=dict(kernel_size=3, padding=1),
+                                                 slice_of=9, channels_last=True),
+    "channel slice of an NCHW map": dict(hw=(8, 16), ch=(5, 4), conv=dict(kernel_size=3, padding=1), slice_of=9),
     "one channel": dict(hw=(8, 16), ch=(1, 1), conv=dict(kernel_size=3, padding=1)),
     "batch 3, expanded gradient": dict(hw=(8, 16), ch=(4, 3), conv=dict(kernel_size=3, padding=1), batch=3,
                                        sum_backward=True),
     "frozen weight": dict(hw=(8, 16), ch=(4, 3), conv=dict(kernel_size=3, padding=1), frozen_weight=True),
     "deterministic": dict(hw=(8, 16), ch=(4, 3), conv=dict(kernel_size=3, padding=1), repeat=True),
+    "no second derivative": dict(hw=(8, 16), ch=(2, 3), conv=dict(kernel_size=3, padding=1), double_backward=True),
 })
 
 
@@ -68,6 +72,11 @@ def _run_case(case: dict) -> dict:
     weight = conv.weight.detach().clone()
     bias = None if conv.bias is None else conv.bias.detach().clone()
     xt = (x.contiguous(memory_format=torch.channels_last) if case.get("channels_last") else x.clone())
+    if case.get("slice_of"):        # the channels [2, 2 + C) of a wider map (as the FFC's split gives them)
+        wide = torch.randn(x.shape[0], case["slice_of"], H, W)
+        wide = wide.contiguous(memory_format=torch.channels_last) if case.get("channels_last") else wide
+        wide[:, 2:2 + C] = x
+        xt = wide[:, 2:2 + C]
     xt.requires_grad_(True)
     wt = (weight.contiguous(memory_format=torch.channels_last) if case.get("weight_cl") else weight.clone())
     wt.requires_grad_(not case.get("frozen_weight"))
@@ -91,7 +100,16 @@ def _run_case(case: dict) -> dict:
            "gw": None if wt.grad is None else rel(wt.grad, w64.grad),
            "gb": None if bt is None else rel(bt.grad, b64.grad),
            "y_channels_last": bool(y.is_contiguous(memory_format=torch.channels_last) and not y.is_contiguous()),
-           "gx_strides_like_x": xt.grad.stride() == xt.stride(), "shape_ok": tuple(y.shape) == tuple(ref.shape)}
+           # (a slice is not dense: autograd's layout rule makes its .grad contiguous whatever the backward returns)
+           "gx_strides_like_x": xt.grad.stride() == xt.stride() or bool(case.get("slice_of")),
+           "shape_ok": tuple(y.shape) == tuple(ref.shape)}
+    if case.get("double_backward"):      # the backward is once-differentiable: a second derivative must raise
+        g, = torch.autograd.grad(triton_conv.triton_conv2d(xt, wt, bt, plan).square().sum(), xt, create_graph=True)
+        try:
+            g.sum().backward()
+            out["second_derivative_raised"] = False
+        except RuntimeError:
+            out["second_derivative_raised"] = True
     if case.get("repeat"):
         gx1, gw1 = xt.grad.clone(), wt.grad.clone()
         xt.grad = wt.grad = None
@@ -123,6 +141,8 @@ def test_interpreted_kernels_equal_deform_conv2d(interpreted, name):
     assert (r["gb"] is None) == (case["conv"].get("bias") is False)
     if case.get("repeat"):
         assert r["bitwise_repeat"]
+    if case.get("double_backward"):
+        assert r["second_derivative_raised"]
 
 
 @pytest.mark.slow
