@@ -93,7 +93,8 @@ def usable(device: torch.device) -> bool:
 
 def _self_check(device: torch.device) -> float:
     """Largest relative error of :func:`triton_conv2d`'s output and gradients on a random plan of 2 x 3 x 6 x 20
-    inputs, 5 output channels, 3x3 taps, against a gather-and-einsum of the same taps."""
+    inputs, 5 output channels, 3x3 taps, against a gather-and-einsum of the same taps in float64 (TF32's rounding
+    is about 1e-3 of it; :func:`usable` allows 1e-2)."""
     g = torch.Generator().manual_seed(0)
     B, C, N, H, W, K = 2, 3, 5, 6, 20, 9
     P = H * W
@@ -104,9 +105,8 @@ def _self_check(device: torch.device) -> float:
     w = torch.randn(N, C, 3, 3, generator=g).to(device).requires_grad_(True)
     b = torch.randn(N, generator=g).to(device).requires_grad_(True)
     go = torch.randn(B, N, H, W, generator=g).to(device)
-    with torch.backends.cudnn.flags(enabled=True, benchmark=False, deterministic=False, allow_tf32=False):
-        y = triton_conv2d(x, w, b, plan)
-        grads = torch.autograd.grad(y, (x, w, b), go)
+    y = triton_conv2d(x, w, b, plan)            # under the current TF32 policy: the variant the layers will run
+    grads = torch.autograd.grad(y, (x, w, b), go)
     xr, wr, br = (t.detach().double().requires_grad_(True) for t in (x, w, b))
     cols = (xr.flatten(2)[:, :, plan.idx.long()] * plan.wt.double()).sum(3)            # (B, C, K, P)
     ref = torch.einsum("bckp,nck->bnp", cols, wr.flatten(2)).view(B, N, H, W) + br.view(1, N, 1, 1)
