@@ -28,6 +28,7 @@ import importlib.util
 import math
 import os
 import warnings
+
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
@@ -54,8 +55,8 @@ _AVAILABLE = available()
 
 def applies(x: Tensor, weight: Tensor) -> bool:
     """Whether :func:`triton_conv2d` runs for ``x (B, C, H, W)`` and ``weight``: a CUDA float32 input and weight, not
-    empty, Triton installed, :data:`ENABLED`, every index within int32, and the kernels passed their self-check on this device
-    (:func:`usable`)."""
+    empty, Triton installed, :data:`ENABLED`, every index within int32, and the kernels passed their self-check on
+    this device (:func:`usable`)."""
     if not (ENABLED and _AVAILABLE and x.is_cuda and x.dtype == torch.float32 and weight.dtype == torch.float32):
         return False
     B, C, H, W = x.shape
