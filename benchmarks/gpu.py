@@ -179,10 +179,12 @@ def projected_conv(dev, reps: int) -> None:
         for what in ("fwd", "fwdbwd"):
             r = t[f"fast {what}"] / t[f"conv {what}"]
             print(f"TARGET ProjectedConv2d {what} {C}ch {H}x{W} B1 ({backend}): {t[f'fast {what}']:.3f} ms = {r:.2f}x "
-                  f"cuDNN conv2d ({t[f'conv {what}']:.3f} ms, TF32) (target <= 1.5x: {'met' if r <= 1.5 else 'MISSED'}); "
+                  f"cuDNN conv2d ({t[f'conv {what}']:.3f} ms, TF32) "
+                  f"(target <= 1.5x: {'met' if r <= 1.5 else 'MISSED'}); "
                   f"{t[f'fast {what}'] / t[f'conv32 {what}']:.2f}x cuDNN without TF32 ({t[f'conv32 {what}']:.3f} ms); "
                   f"grid_conv backend {t[f'grid {what}']:.3f} ms ({t[f'grid {what}'] / t[f'conv {what}']:.2f}x); "
-                  + (f"fused Triton backend {t[f'triton {what}']:.3f} ms ({t[f'triton {what}'] / t[f'conv {what}']:.2f}x)"
+                  + (f"fused Triton backend {t[f'triton {what}']:.3f} ms "
+                     f"({t[f'triton {what}'] / t[f'conv {what}']:.2f}x)"
                      if fused else "fused Triton backend: not usable here (see the warning above)"))
             if fused:
                 fused_vs_grid[f"{what} {C}ch"] = t[f"triton {what}"] / t[f"grid {what}"]

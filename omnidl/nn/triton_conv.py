@@ -233,7 +233,8 @@ def _weight_grad(x: Tensor, gy: Tensor, weight: Tensor, plan: TritonPlan, has_bi
 
 class _TritonConv(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, plan: TritonPlan) -> Tensor:  # type: ignore[override]
+    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None,  # type: ignore[override]
+                plan: TritonPlan) -> Tensor:
         ctx.plan = plan
         ctx.has_bias = bias is not None
         ctx.save_for_backward(x, weight)

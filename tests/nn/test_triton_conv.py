@@ -1,7 +1,7 @@
 """ProjectedConv2d's fused CUDA backend (:mod:`omnidl.nn.triton_conv`), its kernels run here by Triton's interpreter:
 forward and the three gradients equal to ``deform_conv2d`` with the same offsets (float64 reference; float32 to 1e-5
-of the largest value) for example cameras of every kind of plan, strides, dilations, kernels, wraps, a non-binary mask, memory
-formats, channel counts across block edges, bias or none, a frozen weight; deterministic; named errors.
+of the largest value) for example cameras of every kind of plan, strides, dilations, kernels, wraps, a non-binary
+mask, memory formats, channel counts across block edges, bias or none, a frozen weight; deterministic; named errors.
 
 Triton picks its interpreter when it is imported (``TRITON_INTERPRET=1``), so the cases run in one child process
 (this file as a script) and each test reads its case's result."""
@@ -197,7 +197,7 @@ def test_bad_operands_are_named_errors():
         triton_conv.triton_conv2d(torch.randn(1, 2, 6, 12, dtype=torch.float64), conv.weight.double(), None, plan)
 
 
-# -- the sm_90 build, without a GPU: Triton compiles for a named target and its bundled ptxas reports registers ---------
+# -- the sm_90 build, without a GPU: Triton compiles for a named target and its bundled ptxas reports registers --
 _PTRS = {"fwd": dict(x="*fp32", w="*fp32", bias="*fp32", idx="*i32", wt="*fp32", y="*fp32"),
          "gcols": dict(gy="*fp32", w="*fp32", out="*fp32"),
          "sell": dict(g="*fp32", rows="*i32", vals="*fp32", tile_start="*i32", tile_len="*i32", gx="*fp32"),
