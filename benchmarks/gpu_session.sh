@@ -8,8 +8,9 @@
 # 2. benchmarks/gpu.py (FreDSNet fps, ProjectedConv2d vs cuDNN beside both CUDA backends, a training step) and a
 #    CUDA profile.
 # Logs go to OUTDIR; the last lines printed are the summary. The steps' time limits (GPU_TEST_S 180, GPU_DEVICE_S
-# 60, GPU_TRITON_S 100, GPU_BENCH_S 220 seconds) add up to 560 s, within one device call's 600 s. Python packages the machine lacks travel as
-# wheels in ./.whl (git-ignored; see the device tool's notes) and are installed to /tmp/site first.
+# 60, GPU_TRITON_S 100, GPU_BENCH_S 220 seconds) add up to 560 s, within one device call's 600 s. Python packages
+# the machine lacks travel as wheels in ./.whl (git-ignored; see the device tool's notes) and are installed to
+# /tmp/site first.
 set -u
 OUTDIR=${1:-${OUT:-gpu_out}}
 mkdir -p "$OUTDIR"
