@@ -6,10 +6,11 @@
   frames per second (target >= 100 fps on an H100/H200-class GPU; the thesis reports 33 fps on an RTX 3090),
   as a ratio to torchvision's ResNet-50 forward at the same size in the same run; also replayed from a CUDA
   graph (batch-1 inference is launch-bound: the graph removes the per-kernel launch gaps);
-* ``ProjectedConv2d`` (fast backend: the fused Triton kernels of :mod:`omnidl.nn.triton_conv` on CUDA) forward and
-  forward+backward vs ``nn.Conv2d`` (cuDNN, TF32 as PyTorch's default, and without TF32) at 64 ch 128x256 and 256 ch
-  64x128, batch 1 (target <= 1.5x), beside the ``grid_sample`` backend (:mod:`omnidl.nn.grid_conv`) and other block
-  sizes of the kernels;
+* ``ProjectedConv2d`` (fast backend as it runs by default on CUDA: :mod:`omnidl.nn.grid_conv`, or with
+  ``OMNIDL_TRITON=1`` the fused Triton kernels of :mod:`omnidl.nn.triton_conv`) forward and forward+backward vs
+  ``nn.Conv2d`` (cuDNN, TF32 as PyTorch's default, and without TF32) at 64 ch 128x256 and 256 ch 64x128, batch 1
+  (target <= 1.5x), with both CUDA backends timed beside it whatever the default, and other block sizes of the
+  fused kernels; the last line says whether the fused kernels beat ``grid_conv`` at both layers;
 * a FreDSNet training step (CE + L1, zero_grad + forward + backward + SGD step) at 256x128, batch 4.
 
 Times are CUDA-event medians after warm-up (plans, cuDNN autotuning), interleaved per repetition. Each part
