@@ -118,6 +118,28 @@ def _run_case(case: dict) -> dict:
     return out
 
 
+def _through_the_layer() -> dict:
+    """ProjectedConv2d with :func:`triton_conv.applies` saying yes (the dispatch, the plan cache): output and
+    gradients against the layer's CPU path (in the child)."""
+    from unittest import mock
+    torch.manual_seed(1)
+    conv = ProjectedConv2d(4, 3, 3, padding=1, camera=Equirectangular(width=16, height=8))
+    x = torch.randn(2, 4, 8, 16, requires_grad=True)
+    ref = conv(x)
+    go = torch.randn_like(ref)
+    gx_ref, gw_ref = torch.autograd.grad(ref, (x, conv.weight), go)
+    calls = []
+    real = triton_conv.triton_conv2d
+    with mock.patch.object(triton_conv, "applies", lambda x, w: True), \
+            mock.patch.object(triton_conv, "triton_conv2d", lambda *a: calls.append(1) or real(*a)):
+        y = conv(x)
+    gx, gw = torch.autograd.grad(y, (x, conv.weight), go)
+
+    def rel(a, b):
+        return float((a - b).abs().max() / b.abs().max())
+    return {"calls": len(calls), "y": rel(y.detach(), ref.detach()), "gx": rel(gx, gx_ref), "gw": rel(gw, gw_ref)}
+
+
 @pytest.fixture(scope="module")
 def interpreted() -> dict:
     env = dict(os.environ, TRITON_INTERPRET="1")
@@ -148,6 +170,13 @@ def test_interpreted_kernels_equal_deform_conv2d(interpreted, name):
 @pytest.mark.slow
 def test_the_self_check_passes_in_the_interpreter(interpreted):
     assert interpreted["self check"] <= 1e-5
+
+
+@pytest.mark.slow
+def test_the_layer_dispatches_to_the_kernels_where_they_apply(interpreted):
+    r = interpreted["through the layer"]
+    assert r["calls"] == 1
+    assert max(r["y"], r["gx"], r["gw"]) <= TOL, r
 
 
 @pytest.mark.parametrize("outcome, usable", [(1e-7, True), (0.5, False), (RuntimeError("no compiler"), False)])
@@ -285,4 +314,5 @@ if __name__ == "__main__":          # the child process of ``interpreted``: TRIT
         except Exception as e:  # noqa: BLE001 -- reported per case by the tests
             results[name] = {"error": f"{type(e).__name__}: {e}"}
     results["self check"] = triton_conv._self_check(torch.device("cpu"))
+    results["through the layer"] = _through_the_layer()
     print(json.dumps(results))
