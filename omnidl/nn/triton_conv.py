@@ -16,8 +16,8 @@ on CUDA, float32 elsewhere. Float32 only (float64 and the rest run :mod:`.grid_c
 computes in float32, see :class:`~omnidl.nn.ProjectedConv2d`). On CPU tensors the same kernels run in Triton's
 interpreter (slow; the tests use it).
 
-Status: correct in Triton's interpreter against ``deform_conv2d``; not yet compiled or timed on a GPU (no GPU was lent
-when it was written). It is therefore off by default: ``OMNIDL_TRITON=1`` in the environment (or :data:`ENABLED`)
+Status: correct in Triton's interpreter against ``deform_conv2d`` and built for sm_90 without register spills; not yet
+run or timed on a GPU (no GPU was lent when it was written). It is therefore off by default: ``OMNIDL_TRITON=1`` in the environment (or :data:`ENABLED`)
 turns it on, and a self-check on first use (:func:`usable`) falls back to :mod:`.grid_conv` with a warning where the
 kernels do not compile or give wrong values. The plan of the taps and its transpose: :mod:`.triton_plan`.
 """
