@@ -302,7 +302,10 @@ def test_float32_products_build_for_sm90(kernel):
     x = torch.empty(1, 64, 8, 16, device="meta")
     for channels_last in (False, True):
         cfg = triton_conv._config(kernel, x, 1, 128, 64, 64, 9)
-        r = sm90_build(kernel, channels_last, cfg, "ieee", **({"HAS_BIAS": True} if kernel != "gcols" else {}))
+        try:
+            r = sm90_build(kernel, channels_last, cfg, "ieee", **({"HAS_BIAS": True} if kernel != "gcols" else {}))
+        except FileNotFoundError as e:
+            pytest.skip(f"Triton's ptxas is missing: {e}")
         assert r["shared"] <= 228 * 1024, r
 
 
