@@ -33,7 +33,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from .triton_plan import TILE_Q, TritonPlan, build_plan
+from .sampling import _is_channels_last
+from .triton_plan import _INT32, TILE_Q, TritonPlan, build_plan
 
 __all__ = ["ENABLED", "TUNE", "TILE_Q", "TritonPlan", "applies", "available", "build_plan", "triton_conv2d", "usable"]
 
@@ -42,7 +43,6 @@ __all__ = ["ENABLED", "TUNE", "TILE_Q", "TritonPlan", "applies", "available", "b
 ENABLED = os.environ.get("OMNIDL_TRITON", "0") == "1"
 #: block sizes forced per kernel (``{"fwd": {"BLOCK_P": 64, ...}, ...}``; benchmarks' A/B), else :func:`_config`
 TUNE: dict[str, dict] = {}
-_INT32 = 2 ** 31 - 1  # indexes of the kernels are int32
 
 
 def available() -> bool:
@@ -156,10 +156,6 @@ def _pixels(t: Tensor) -> Tensor:
     return t if t.stride(2) == t.shape[3] * t.stride(3) else t.contiguous()
 
 
-def _channels_last(t: Tensor) -> bool:
-    return t.shape[1] > 1 and t.stride(1) < t.stride(3)
-
-
 def _taps_weight(weight: Tensor) -> Tensor:
     """``weight (N, C, kh, kw)`` addressable as ``(N, C, K)`` strides (taps flat), copied if not."""
     return weight if weight.stride(2) == weight.shape[3] * weight.stride(3) else weight.contiguous()
@@ -181,7 +177,7 @@ def _forward(x: Tensor, weight: Tensor, bias: Tensor | None, plan: TritonPlan) -
     N = weight.shape[0]
     Ho, Wo = plan.out_hw
     P, K = Ho * Wo, plan.taps
-    cl = _channels_last(x)
+    cl = _is_channels_last(x)
     y = torch.empty(B, N, Ho, Wo, dtype=torch.float32, device=x.device,
                     memory_format=torch.channels_last if cl else torch.contiguous_format)
     cfg = _config("fwd", x, B, P, C, N, K)
@@ -204,7 +200,7 @@ def _input_grad(gy: Tensor, weight: Tensor, plan: TritonPlan, x: Tensor) -> Tens
         gy, weight, g, C, N, P, K, gy.stride(0), gy.stride(1), gy.stride(3), weight.stride(0), weight.stride(1),
         weight.stride(3), PREC=_precision(x), **cfg)
     start, length, rows, vals = plan.transpose()
-    gx = torch.empty_like(x, memory_format=torch.channels_last if _channels_last(x) else torch.contiguous_format)
+    gx = torch.empty_like(x, memory_format=torch.channels_last if _is_channels_last(x) else torch.contiguous_format)
     cfg = _config("sell", x, B, P, C, N, K)
     ker.sell[(start.numel(), -(-C // cfg["BLOCK_C"]), B)](
         g, rows, vals, start, length, gx, C, H * W, P * K * C, gx.stride(0), gx.stride(1), gx.stride(3),
@@ -225,7 +221,7 @@ def _weight_grad(x: Tensor, gy: Tensor, weight: Tensor, plan: TritonPlan, has_bi
     part = torch.empty(splits, N * C * K + N, dtype=torch.float32, device=x.device)
     _kernels(x).wgrad[(K * -(-C // cfg["BLOCK_C"]), -(-N // cfg["BLOCK_N"]), splits)](
         x, plan.idx, plan.wt, gy, part, C, N, P, K, R, rows, -(-C // cfg["BLOCK_C"]), x.stride(0), x.stride(1),
-        x.stride(3), gy.stride(0), gy.stride(1), gy.stride(3), HAS_BIAS=has_bias, CL=_channels_last(x),
+        x.stride(3), gy.stride(0), gy.stride(1), gy.stride(3), HAS_BIAS=has_bias, CL=_is_channels_last(x),
         PREC=_precision(x), **cfg)
     total = part[0] if splits == 1 else part.sum(0)
     return total[:N * C * K].view(N, C, kh, kw), total[N * C * K:]

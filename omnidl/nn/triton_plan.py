@@ -18,7 +18,7 @@ from .sampling import SamplingPlan, build_plan as build_sampling_plan
 
 #: pixels per tile of the transposed plan (:meth:`TritonPlan.transpose`; the ``sell`` kernel's ``BLOCK_Q``)
 TILE_Q = 64
-_INT32 = 2 ** 31 - 1
+_INT32 = 2 ** 31 - 1  # the kernels index with int32
 
 
 @dataclass(frozen=True, eq=False)
