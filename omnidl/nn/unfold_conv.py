@@ -64,6 +64,14 @@ NATIVE_PRODUCTS = True
 #: columns (a packed panel is 32 wide); measured on the backward of a 1x1 convolution from 4 channels, a 4-row
 #: product ran on one thread and a 4-column one on an eighth of the vector lanes, 3-8x slower than the BLAS
 NATIVE_MIN_ROWS, NATIVE_MIN_COLUMNS = 32, 16
+#: a product whose first operand is the weight (the forward's ``W @ cols``, the input gradient's ``W^T @ g``) also
+#: runs on the register kernel on this many columns (a small map: 2x4 positions for a 64x128 input to ResNet-50):
+#: memory-bound on the weight, the kernel reads it faster than the BLAS, whose product from a transposed weight
+#: on 2-11 columns runs as a slow matrix-vector loop. 2 threads, an AMD host, 1024 -> 1024 channels 3x3 (37.7 MB):
+#: ``W^T g`` 4.6 against 15-17 ms, ``W c`` 4.1-4.3 against 5.6-7.9 ms; 512 -> 512: 1.1 against 1.5-2.0 and 0.9
+#: against 1.3-1.4 ms. One column stays on the BLAS's matrix-vector product (1.4 against 4.7 ms), and from 12 the
+#: BLAS's own blocked product is level or faster on the smaller weights.
+NATIVE_WEIGHT_COLUMNS = range(2, 12)
 _HAS_USE_COUNT = hasattr(torch._C, "_storage_Use_Count")
 
 _Pair = int | tuple[int, int]
@@ -170,8 +178,10 @@ def _side_by_side(t: Tensor) -> Tensor:
     return t[0] if t.shape[0] == 1 else t.transpose(0, 1).reshape(t.shape[1], -1)
 
 
-def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | None = None) -> Tensor:
-    """``a (m, k) @ b (k, n)`` plus ``bias (m,)`` per row when given, into ``out (m, n)`` when given.
+def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | None = None,
+             weight: bool = False) -> Tensor:
+    """``a (m, k) @ b (k, n)`` plus ``bias (m,)`` per row when given, into ``out (m, n)`` when given; ``weight``:
+    ``a`` is a weight or its transpose (:data:`NATIVE_WEIGHT_COLUMNS`).
 
     Float32 products that build no autograd graph run on omnidl's register kernel (``omnidl_gemm`` of
     ``csrc/fixed_conv.c``, :mod:`omnidl.nn.native`), which reads ``a`` where it lies when it is a weight and copies
@@ -183,7 +193,8 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
     agree to float32 rounding.
     """
     lib = (native.library() if NATIVE_PRODUCTS and a.dtype == b.dtype == torch.float32 and a.shape[1]
-           and a.shape[0] >= NATIVE_MIN_ROWS and b.shape[1] >= NATIVE_MIN_COLUMNS and not torch.is_grad_enabled()
+           and a.shape[0] >= NATIVE_MIN_ROWS and not torch.is_grad_enabled()
+           and (b.shape[1] >= NATIVE_MIN_COLUMNS or weight and b.shape[1] in NATIVE_WEIGHT_COLUMNS)
            else None)
     if lib is not None and (out is None or out.stride(1) == 1):
         (m, k), n = a.shape, b.shape[1]
@@ -215,7 +226,7 @@ class _Product(torch.autograd.Function):
         ctx.save_for_backward(weight, cols)       # inputs, not the side-by-side copy: differentiable again
         ctx.has_bias = bias is not None
         w, c = _rows(weight), _side_by_side(cols)
-        y = _product(w, c, bias=bias)
+        y = _product(w, c, bias=bias, weight=True)
         return y.unsqueeze(0) if B == 1 else y.view(-1, B, L).transpose(0, 1)
 
     @staticmethod
@@ -226,7 +237,7 @@ class _Product(torch.autograd.Function):
         g = _side_by_side(gy)
         gcols = None
         if need_cols:
-            gc = _product(_rows(weight).t(), g)                                           # (K, B*L)
+            gc = _product(_rows(weight).t(), g, weight=True)                              # (K, B*L)
             gcols = gc.unsqueeze(0) if B == 1 else gc.view(-1, B, L).transpose(0, 1)
         gw = None
         if need_w:

@@ -294,8 +294,29 @@ PRODUCTS = [
 ]
 
 
+# (name, m, k, n, a transposed, a is a weight, native): products on few columns (a small map), where only a weight
+# operand takes the register kernel, from 2 to 11 columns (unfold_conv.NATIVE_WEIGHT_COLUMNS)
+FEW_COLUMNS = [
+    ("a weight on 2 columns (a 1x2 map)", 96, 1152, 2, False, True, True),
+    ("a weight's transpose on 8 columns (a 2x4 map)", 1152, 96, 8, True, True, True),
+    ("a weight's transpose on 11 columns, ragged", 421, 600, 11, True, True, True),
+    ("a weight on one column: the BLAS's matrix-vector product", 96, 1152, 1, False, True, False),
+    ("a weight's transpose on 12 columns: PyTorch's", 1152, 96, 12, True, True, False),
+    ("not a weight on 4 columns: PyTorch's", 128, 4096, 4, False, False, False),
+]
+
+
+@pytest.mark.parametrize("name,m,k,n,at,weight,native", FEW_COLUMNS, ids=[p[0] for p in FEW_COLUMNS])
+def test_products_on_few_columns(name, m, k, n, at, weight, native, monkeypatch):
+    _check_product(m, k, n, at, False, False, False, native, monkeypatch, weight=weight)
+
+
 @pytest.mark.parametrize("name,m,k,n,at,bt,wide,bias,native", PRODUCTS, ids=[p[0] for p in PRODUCTS])
 def test_products_on_the_register_kernel(name, m, k, n, at, bt, wide, bias, native, monkeypatch):
+    _check_product(m, k, n, at, bt, wide, bias, native, monkeypatch)
+
+
+def _check_product(m, k, n, at, bt, wide, bias, native, monkeypatch, weight=False):
     calls = _native_gemm_counter(monkeypatch)
     g = torch.Generator().manual_seed(m + n)
     a = torch.randn(k, m, generator=g).t() if at else torch.randn(m, k, generator=g)
@@ -303,7 +324,7 @@ def test_products_on_the_register_kernel(name, m, k, n, at, bt, wide, bias, nati
     c = torch.randn(m, n + 7, generator=g)[:, 3:3 + n] if wide else None
     bb = torch.randn(m, generator=g) if bias else None
     with torch.no_grad():                                  # as in autograd's forward and backward
-        y = U._product(a, b, out=c, bias=bb)
+        y = U._product(a, b, out=c, bias=bb, weight=weight)
     assert len(calls) == int(native)
     if c is not None:
         assert y.data_ptr() == c.data_ptr()
@@ -326,9 +347,10 @@ def test_products_under_create_graph_and_the_switch_are_pytorchs(monkeypatch):
     assert calls == []
 
 
-def test_weight_heavy_layer_runs_every_product_on_the_register_kernel(monkeypatch):
+@pytest.mark.parametrize("size", [(4, 8), (2, 4)])
+def test_weight_heavy_layer_runs_every_product_on_the_register_kernel(size, monkeypatch):
     calls = _native_gemm_counter(monkeypatch)
-    x, w, b = _operands((1, 64, 4, 8), (512, 64, 3, 3), True, False, torch.float32)
+    x, w, b = _operands((1, 64, *size), (512, 64, 3, 3), True, False, torch.float32)
     y = unfold_conv2d(x, w, b, 1, 1)
     y.backward(torch.ones_like(y))
     assert len(calls) == 3                                 # forward, input gradient, weight gradient
