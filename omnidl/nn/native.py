@@ -4,7 +4,7 @@ up-sampling (``csrc/upsample.c``), the thin 1x1 expansion with batch norm (``csr
 wrap into channels-last memory and back (``csrc/wrap_layout.c``), the photometric gyroscopes' reads of a
 panorama at directions with their Gauss-Newton sums (``csrc/sphere_terms.c``) and the synthetic renderer's box slab
 tests, per-pixel surface and shading pass and layout maps (``csrc/box_slabs.c``, ``csrc/surface_shade.c``,
-``csrc/layout_maps.c``), one shared library.
+``csrc/layout_maps.c``) and a weight's products on few columns (``csrc/narrow_gemm.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -46,7 +46,7 @@ SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c",
                                                                  "expansion.c", "wrap_layout.c", "sphere_terms.c",
                                                                  "surface_shade.c", "box_slabs.c",
-                                                                 "layout_maps.c"))
+                                                                 "layout_maps.c", "narrow_gemm.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -155,6 +155,8 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_dense_forward.restype = i
     lib.omnidl_gemm.argtypes = [i, i, i, p, n, n, p, n, n, p, n, i, i]
     lib.omnidl_gemm.restype = i
+    lib.omnidl_gemm_narrow.argtypes = [i, i, i, p, n, n, p, n, n, p, n, i, i]
+    lib.omnidl_gemm_narrow.restype = i
     lib.omnidl_wino_packed_floats.argtypes = [i, i]
     lib.omnidl_wino_packed_floats.restype = n
     lib.omnidl_wino_pack.argtypes = [p, i, i, p, i]

@@ -64,14 +64,15 @@ NATIVE_PRODUCTS = True
 #: columns (a packed panel is 32 wide); measured on the backward of a 1x1 convolution from 4 channels, a 4-row
 #: product ran on one thread and a 4-column one on an eighth of the vector lanes, 3-8x slower than the BLAS
 NATIVE_MIN_ROWS, NATIVE_MIN_COLUMNS = 32, 16
-#: a product whose first operand is the weight (the forward's ``W @ cols``, the input gradient's ``W^T @ g``) also
-#: runs on the register kernel on this many columns (a small map: 2x4 positions for a 64x128 input to ResNet-50):
-#: memory-bound on the weight, the kernel reads it faster than the BLAS, whose product from a transposed weight
-#: on 2-11 columns runs as a slow matrix-vector loop. 2 threads, an AMD host, 1024 -> 1024 channels 3x3 (37.7 MB):
-#: ``W^T g`` 4.6 against 15-17 ms, ``W c`` 4.1-4.3 against 5.6-7.9 ms; 512 -> 512: 1.1 against 1.5-2.0 and 0.9
-#: against 1.3-1.4 ms. One column stays on the BLAS's matrix-vector product (1.4 against 4.7 ms), and from 12 the
-#: BLAS's own blocked product is level or faster on the smaller weights.
-NATIVE_WEIGHT_COLUMNS = range(2, 12)
+#: a product whose first operand is the weight (the forward's ``W @ cols``, the input gradient's ``W^T @ g``) on
+#: this many columns (a small map: 2x4 positions for a 128x64 input to ResNet-50) runs on the few-column kernel
+#: (``omnidl_gemm_narrow``, ``csrc/narrow_gemm.c``): bound by reading the weight, it loads each element once and
+#: multiplies it into every column from registers, where the register kernel's 32-column panels run mostly on zero
+#: lanes and the BLAS's product from a transposed weight on 2-11 columns runs as a slow strided loop. 2 threads, an
+#: AMD host, 1024 -> 1024 channels 3x3 (37.7 MB) on 2 / 8 columns: ``W^T g`` 1.6 / 1.9 ms against 4.6 (register
+#: kernel) and 17 / 16 ms (MKL), ``W c`` 1.1 / 1.9 ms against 4.2 and 5.7 / 5.6 ms; on one column 1.5 and 0.75 ms
+#: against MKL's matrix-vector products' 1.3 and 1.6 ms.
+NATIVE_WEIGHT_COLUMNS = range(1, 12)
 _HAS_USE_COUNT = hasattr(torch._C, "_storage_Use_Count")
 
 _Pair = int | tuple[int, int]
@@ -184,7 +185,8 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
     ``a`` is a weight or its transpose (:data:`NATIVE_WEIGHT_COLUMNS`).
 
     Float32 products that build no autograd graph run on omnidl's register kernel (``omnidl_gemm`` of
-    ``csrc/fixed_conv.c``, :mod:`omnidl.nn.native`), which reads ``a`` where it lies when it is a weight and copies
+    ``csrc/fixed_conv.c``, :mod:`omnidl.nn.native`; a weight's products on fewer than :data:`NATIVE_MIN_COLUMNS`
+    columns on ``omnidl_gemm_narrow``), which reads ``a`` where it lies when it is a weight and copies
     it block by block first when it is a weight's transpose, and splits its rows among the threads. These
     products have few columns (one per output position, 32 for a ``4x8`` map), where the BLAS runs well below its
     peak: for ``1024 -> 1024`` channels on ``4x8`` (2 threads, an AMD host) the forward took 3.4 against 4.9 ms,
@@ -201,8 +203,11 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
         c = a.new_empty(m, n) if out is None else out
         if bias is not None:
             c.copy_(bias.unsqueeze(1).expand(m, n))
-        rc = lib.omnidl_gemm(m, n, k, a.data_ptr(), a.stride(0), a.stride(1), b.data_ptr(), b.stride(0), b.stride(1),
-                             c.data_ptr(), c.stride(0), int(bias is not None), max(1, torch.get_num_threads()))
+        args = (m, n, k, a.data_ptr(), a.stride(0), a.stride(1), b.data_ptr(), b.stride(0), b.stride(1),
+                c.data_ptr(), c.stride(0), int(bias is not None), max(1, torch.get_num_threads()))
+        rc = lib.omnidl_gemm_narrow(*args) if n < NATIVE_MIN_COLUMNS else 2      # a weight's few columns
+        if rc == 2:
+            rc = lib.omnidl_gemm(*args)
         if rc == 0:
             return c
         if rc == 1:

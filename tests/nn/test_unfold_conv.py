@@ -258,18 +258,20 @@ def test_a_channel_slice_of_a_channels_last_map_keeps_the_format():
 
 
 def _native_gemm_counter(monkeypatch):
-    """Counts the calls of the register kernel's product; skips where the build has no such kernel."""
+    """Records ``(kernel, m, n, k)`` of each product a native kernel computed (the register kernel's
+    ``omnidl_gemm`` or the few-column ``omnidl_gemm_narrow``); skips where the build has no register kernel."""
     from omnidl.nn import native
     lib = native.library()
     if lib is None or lib.omnidl_fc_kernel() == 0:
         pytest.skip("no native register kernel in this build (the products are PyTorch's)")
     calls = []
-    real = lib.omnidl_gemm
-
-    def counted(*args):
-        calls.append(args[:3])
-        return real(*args)
-    monkeypatch.setattr(lib, "omnidl_gemm", counted)
+    for name in ("omnidl_gemm", "omnidl_gemm_narrow"):
+        def counted(*args, real=getattr(lib, name), name=name):
+            rc = real(*args)
+            if rc == 0:
+                calls.append((name, *args[:3]))
+            return rc
+        monkeypatch.setattr(lib, name, counted)
     return calls
 
 
@@ -294,21 +296,27 @@ PRODUCTS = [
 ]
 
 
-# (name, m, k, n, a transposed, a is a weight, native): products on few columns (a small map), where only a weight
-# operand takes the register kernel, from 2 to 11 columns (unfold_conv.NATIVE_WEIGHT_COLUMNS)
+# (name, m, k, n, a transposed, out's leading dimension padded, bias, a is a weight, the kernel that computes it or
+# None for PyTorch's): products on few columns (a small map), where only a weight operand takes a native kernel, the
+# few-column one (csrc/narrow_gemm.c), on 1 to 11 columns (unfold_conv.NATIVE_WEIGHT_COLUMNS)
+NARROW = "omnidl_gemm_narrow"
 FEW_COLUMNS = [
-    ("a weight on 2 columns (a 1x2 map)", 96, 1152, 2, False, True, True),
-    ("a weight's transpose on 8 columns (a 2x4 map)", 1152, 96, 8, True, True, True),
-    ("a weight's transpose on 11 columns, ragged", 421, 600, 11, True, True, True),
-    ("a weight on one column: the BLAS's matrix-vector product", 96, 1152, 1, False, True, False),
-    ("a weight's transpose on 12 columns: PyTorch's", 1152, 96, 12, True, True, False),
-    ("not a weight on 4 columns: PyTorch's", 128, 4096, 4, False, False, False),
+    ("a weight on 2 columns (a 1x2 map)", 96, 1152, 2, False, False, False, True, NARROW),
+    ("a weight on 11 columns, k ragged, bias, into a wider matrix", 37, 601, 11, False, True, True, True, NARROW),
+    ("a weight, an odd row count, k shorter than a vector", 33, 7, 5, False, False, True, True, NARROW),
+    ("a weight's transpose on 8 columns (a 2x4 map)", 1152, 96, 8, True, False, False, True, NARROW),
+    ("a weight's transpose on 11 columns, m ragged", 421, 600, 11, True, False, False, True, NARROW),
+    ("a weight's transpose on 3 columns, bias, into a wider matrix", 100, 33, 3, True, True, True, True, NARROW),
+    ("a weight on one column", 96, 1152, 1, False, False, False, True, NARROW),
+    ("a weight's transpose on one column", 1152, 96, 1, True, False, False, True, NARROW),
+    ("a weight's transpose on 12 columns: PyTorch's", 1152, 96, 12, True, False, False, True, None),
+    ("not a weight on 4 columns: PyTorch's", 128, 4096, 4, False, False, False, False, None),
 ]
 
 
-@pytest.mark.parametrize("name,m,k,n,at,weight,native", FEW_COLUMNS, ids=[p[0] for p in FEW_COLUMNS])
-def test_products_on_few_columns(name, m, k, n, at, weight, native, monkeypatch):
-    _check_product(m, k, n, at, False, False, False, native, monkeypatch, weight=weight)
+@pytest.mark.parametrize("name,m,k,n,at,wide,bias,weight,kernel", FEW_COLUMNS, ids=[p[0] for p in FEW_COLUMNS])
+def test_products_on_few_columns(name, m, k, n, at, wide, bias, weight, kernel, monkeypatch):
+    _check_product(m, k, n, at, False, wide, bias, kernel, monkeypatch, weight=weight)
 
 
 @pytest.mark.parametrize("name,m,k,n,at,bt,wide,bias,native", PRODUCTS, ids=[p[0] for p in PRODUCTS])
@@ -325,7 +333,9 @@ def _check_product(m, k, n, at, bt, wide, bias, native, monkeypatch, weight=Fals
     bb = torch.randn(m, generator=g) if bias else None
     with torch.no_grad():                                  # as in autograd's forward and backward
         y = U._product(a, b, out=c, bias=bb, weight=weight)
-    assert len(calls) == int(native)
+    assert len(calls) == int(bool(native))
+    if isinstance(native, str):
+        assert calls[0][0] == native
     if c is not None:
         assert y.data_ptr() == c.data_ptr()
     ref = a.double() @ b.double() + (bb.double().unsqueeze(1) if bias else 0)
@@ -353,10 +363,42 @@ def test_weight_heavy_layer_runs_every_product_on_the_register_kernel(size, monk
     x, w, b = _operands((1, 64, *size), (512, 64, 3, 3), True, False, torch.float32)
     y = unfold_conv2d(x, w, b, 1, 1)
     y.backward(torch.ones_like(y))
-    assert len(calls) == 3                                 # forward, input gradient, weight gradient
+    # forward, input gradient, weight gradient; on the 2x4 map the weight's two products have 8 columns
+    narrow = size == (2, 4)
+    assert [c[0] for c in calls] == [NARROW if narrow else "omnidl_gemm"] * 2 + ["omnidl_gemm"]
     xr, wr, br = (t.detach().clone().requires_grad_() for t in (x, w, b))
     ref = F.conv2d(xr, wr, br, 1, 1)
     ref.backward(torch.ones_like(ref))
     _close(y, ref, 1e-5)
     for got, want in ((x.grad, xr.grad), (w.grad, wr.grad), (b.grad, br.grad)):
         _close(got, want, 1e-5)
+
+
+@pytest.mark.parametrize("build", ["generic_x86_build", "avx2_build"])
+def test_the_few_column_kernel_of_other_builds(build, request):
+    """``omnidl_gemm_narrow`` built without AVX-512 (8-lane vectors, one row or vector at a time): every case of the
+    few-column table against float64."""
+    from omnidl.nn import native
+    request.getfixturevalue(build)
+    lib = native.library()
+    if lib is None:
+        pytest.skip("no native library in this build")
+    for name, m, k, n, at, wide, bias, weight, kernel in FEW_COLUMNS:
+        if kernel != NARROW:
+            continue
+        g = torch.Generator().manual_seed(m + n)
+        a = torch.randn(k, m, generator=g).t() if at else torch.randn(m, k, generator=g)
+        b = torch.randn(k, n, generator=g)
+        c = torch.randn(m, n + 7, generator=g)[:, 3:3 + n] if wide else torch.empty(m, n)
+        bb = torch.randn(m, generator=g) if bias else None
+        if bb is not None:
+            c.copy_(bb.unsqueeze(1).expand(m, n))
+        rc = lib.omnidl_gemm_narrow(m, n, k, a.data_ptr(), a.stride(0), a.stride(1), b.data_ptr(), b.stride(0),
+                                    b.stride(1), c.data_ptr(), c.stride(0), int(bias), 2)
+        assert rc == 0, name
+        _close(c.double(), a.double() @ b.double() + (bb.double().unsqueeze(1) if bias else 0), 1e-6)
+    a, b, c = torch.randn(64, 64), torch.randn(64, 12), torch.empty(64, 12)
+    args = (a.data_ptr(), 64, 1, b.data_ptr(), 12, 1, c.data_ptr(), 12, 0, 2)
+    assert lib.omnidl_gemm_narrow(64, 12, 64, *args) == 2          # 12 columns: another product's
+    args = (a.data_ptr(), 128, 2, b.data_ptr(), 12, 1, c.data_ptr(), 12, 0, 2)
+    assert lib.omnidl_gemm_narrow(32, 4, 32, *args) == 2           # neither a's rows nor its columns contiguous

@@ -1,0 +1,173 @@
+/* A weight's product on few columns: c (m, n) (+)= a (m, k) b (k, n) for n <= NARROW_MAX, float32.
+ *
+ * On a small feature map (2x4 positions at the bottom of ResNet-50 for a 128x64 input) the products of a
+ * convolution's weight have only a few columns, one per output position: c = W x (the forward) and c = W^T g
+ * (the input gradient). They read the whole weight for a handful of multiply-adds per element, so they are bound
+ * by that read. The blocked register kernel of fixed_conv.c (32-column panels) then runs mostly on zero lanes,
+ * and the BLAS's product from a transposed weight runs as a slow strided loop. Here every element of a is
+ * loaded once and multiplied into all n columns from registers:
+ *
+ *   rows  (a's rows contiguous, acs == 1: a weight W): NROWS rows at a time, the vector lanes along k; b is
+ *         first copied transposed (n, k) so that each column is a contiguous vector; each row's n sums are
+ *         reduced across the lanes at the end;
+ *   cols  (a's columns contiguous, ars == 1: a weight's transpose W^T, rows of W side by side): NROWS vectors of
+ *         consecutive rows of c at a time, the lanes along m; each step over k loads a piece of one weight row
+ *         and multiplies it by n broadcast values of b.
+ *
+ * The threads split the rows of c. `accumulate` adds to c (a bias written there first) instead of writing it.
+ * Vectors are GCC's generic vectors: 16 lanes (one zmm) with AVX-512, else 8; with AVX-512, two rows (or
+ * vectors) of n <= NARROW_MAX accumulators fill at most 22 of the 32 registers; with 16 registers, one.
+ */
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#ifndef NARROW_MAX
+#define NARROW_MAX 11
+#endif
+#if defined(__AVX512F__)
+#define NVL 16
+#define NROWS 2
+#else
+#define NVL 8
+#define NROWS 1
+#endif
+/* weight rows fetched ahead in the cols form (their stride is a whole weight row) */
+#ifndef NARROW_AHEAD
+#define NARROW_AHEAD 8
+#endif
+
+typedef float vec __attribute__((vector_size(NVL * sizeof(float))));
+typedef float vec_u __attribute__((vector_size(NVL * sizeof(float)), aligned(sizeof(float))));
+
+static inline vec load_u(const float *p) { return *(const vec_u *)p; }
+
+static inline float lane_sum(vec v) {
+    float s = 0.0f;
+    for (int l = 0; l < NVL; ++l) s += v[l];
+    return s;
+}
+
+static inline void put(float *c, float v, int accumulate) { *c = accumulate ? *c + v : v; }
+
+/* rows i0 .. i0 + NROWS - 1 (those below m) of the rows form; bt (n, k) is b transposed */
+static inline __attribute__((always_inline)) void rows_block(const int n, int m, int k, int i0, const float *a,
+                                                             int64_t ars, const float *bt, float *c, int64_t ldc,
+                                                             int accumulate) {
+    vec acc[NROWS][NARROW_MAX];
+    const float *row[NROWS];
+#pragma GCC unroll 4
+    for (int r = 0; r < NROWS; ++r) {
+        row[r] = a + (int64_t)(i0 + r < m ? i0 + r : i0) * ars;
+#pragma GCC unroll 16
+        for (int j = 0; j < n; ++j) acc[r][j] = (vec){0};
+    }
+    int p = 0;
+    for (; p + NVL <= k; p += NVL) {
+        vec x[NROWS];
+#pragma GCC unroll 4
+        for (int r = 0; r < NROWS; ++r) x[r] = load_u(row[r] + p);
+#pragma GCC unroll 16
+        for (int j = 0; j < n; ++j) {
+            const vec y = load_u(bt + (int64_t)j * k + p);
+#pragma GCC unroll 4
+            for (int r = 0; r < NROWS; ++r) acc[r][j] += x[r] * y;
+        }
+    }
+    for (int r = 0; r < NROWS && i0 + r < m; ++r)
+        for (int j = 0; j < n; ++j) {
+            float s = lane_sum(acc[r][j]);
+            for (int q = p; q < k; ++q) s += row[r][q] * bt[(int64_t)j * k + q];
+            put(c + (int64_t)(i0 + r) * ldc + j, s, accumulate);
+        }
+}
+
+/* rows i0 .. i0 + NROWS * NVL - 1 of c in the cols form (all below m): a[i + p * acs] */
+static inline __attribute__((always_inline)) void cols_block(const int n, int k, int i0, const float *a, int64_t acs,
+                                                             const float *b, int64_t brs, int64_t bcs, float *c,
+                                                             int64_t ldc, int accumulate) {
+    vec acc[NROWS][NARROW_MAX];
+#pragma GCC unroll 4
+    for (int r = 0; r < NROWS; ++r)
+#pragma GCC unroll 16
+        for (int j = 0; j < n; ++j) acc[r][j] = (vec){0};
+    for (int p = 0; p < k; ++p) {
+        const float *src = a + i0 + (int64_t)p * acs;
+        if (p + NARROW_AHEAD < k)
+#pragma GCC unroll 4
+            for (int r = 0; r < NROWS; ++r) __builtin_prefetch(src + NARROW_AHEAD * acs + r * NVL);
+        vec x[NROWS];
+#pragma GCC unroll 4
+        for (int r = 0; r < NROWS; ++r) x[r] = load_u(src + r * NVL);
+#pragma GCC unroll 16
+        for (int j = 0; j < n; ++j) {
+            const float y = b[(int64_t)p * brs + (int64_t)j * bcs];
+#pragma GCC unroll 4
+            for (int r = 0; r < NROWS; ++r) acc[r][j] += x[r] * y;
+        }
+    }
+    for (int r = 0; r < NROWS; ++r)
+        for (int l = 0; l < NVL; ++l)
+            for (int j = 0; j < n; ++j)
+                put(c + (int64_t)(i0 + r * NVL + l) * ldc + j, acc[r][j][l], accumulate);
+}
+
+/* the rows of c from i0 (fewer than a whole cols block) in the cols form, one at a time */
+static void cols_tail(int n, int m, int k, int i0, const float *a, int64_t acs, const float *b, int64_t brs,
+                      int64_t bcs, float *c, int64_t ldc, int accumulate) {
+    for (int i = i0; i < m; ++i)
+        for (int j = 0; j < n; ++j) {
+            float s = 0.0f;
+            for (int p = 0; p < k; ++p) s += a[i + (int64_t)p * acs] * b[(int64_t)p * brs + (int64_t)j * bcs];
+            put(c + (int64_t)i * ldc + j, s, accumulate);
+        }
+}
+
+#define NARROW_CASES(F, ...)                                                                                       \
+    switch (n) {                                                                                                   \
+    case 1: F(1, __VA_ARGS__); break;                                                                              \
+    case 2: F(2, __VA_ARGS__); break;                                                                              \
+    case 3: F(3, __VA_ARGS__); break;                                                                              \
+    case 4: F(4, __VA_ARGS__); break;                                                                              \
+    case 5: F(5, __VA_ARGS__); break;                                                                              \
+    case 6: F(6, __VA_ARGS__); break;                                                                              \
+    case 7: F(7, __VA_ARGS__); break;                                                                              \
+    case 8: F(8, __VA_ARGS__); break;                                                                              \
+    case 9: F(9, __VA_ARGS__); break;                                                                              \
+    case 10: F(10, __VA_ARGS__); break;                                                                            \
+    default: F(11, __VA_ARGS__); break;                                                                            \
+    }
+
+/* Returns 0; 1 when a buffer cannot be allocated; 2 when the product is not one of the two forms (n outside
+ * 1..NARROW_MAX, or neither a's rows nor its columns contiguous): the caller takes another product. */
+int omnidl_gemm_narrow(int m, int n, int k, const float *a, int64_t ars, int64_t acs, const float *b, int64_t brs,
+                       int64_t bcs, float *c, int64_t ldc, int accumulate, int nthreads) {
+    if (n < 1 || n > NARROW_MAX || m < 1 || k < 1) return 2;
+    if (acs == 1) {
+        float *bt = (float *)malloc(sizeof(float) * (size_t)n * (size_t)k);
+        if (!bt) return 1;
+        for (int j = 0; j < n; ++j)
+            for (int p = 0; p < k; ++p) bt[(int64_t)j * k + p] = b[(int64_t)p * brs + (int64_t)j * bcs];
+        const int blocks = (m + NROWS - 1) / NROWS;
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+        for (int s = 0; s < blocks; ++s) {
+#define ROWS_CASE(N, ...) rows_block(N, __VA_ARGS__)
+            NARROW_CASES(ROWS_CASE, m, k, s * NROWS, a, ars, bt, c, ldc, accumulate)
+#undef ROWS_CASE
+        }
+        free(bt);
+        return 0;
+    }
+    if (ars == 1) {
+        const int width = NROWS * NVL, blocks = m / width;
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+        for (int s = 0; s < blocks; ++s) {
+#define COLS_CASE(N, ...) cols_block(N, __VA_ARGS__)
+            NARROW_CASES(COLS_CASE, k, s * width, a, acs, b, brs, bcs, c, ldc, accumulate)
+#undef COLS_CASE
+        }
+        cols_tail(n, m, k, blocks * width, a, acs, b, brs, bcs, c, ldc, accumulate);
+        return 0;
+    }
+    return 2;
+}
