@@ -15,21 +15,23 @@
  *         and multiplies it by n broadcast values of b.
  *
  * The threads split the rows of c. `accumulate` adds to c (a bias written there first) instead of writing it.
- * Vectors are GCC's generic vectors: 16 lanes (one zmm) with AVX-512, else 8; with AVX-512, two rows (or
- * vectors) of n <= NARROW_MAX accumulators fill at most 22 of the 32 registers; with 16 registers, one.
+ * Vectors are GCC's generic vectors: 16 lanes (one zmm) with AVX-512, 8 with AVX, else 4 (SSE, NEON); with
+ * AVX-512, two rows (or vectors) of n <= NARROW_MAX accumulators fill at most 22 of the 32 registers; with 16
+ * registers, one.
  */
 #include <stdint.h>
 #include <stdlib.h>
-#include <string.h>
 
-#ifndef NARROW_MAX
+/* the most columns taken (as many cases as NARROW_CASES below lists) */
 #define NARROW_MAX 11
-#endif
 #if defined(__AVX512F__)
 #define NVL 16
 #define NROWS 2
-#else
+#elif defined(__AVX__)
 #define NVL 8
+#define NROWS 1
+#else
+#define NVL 4
 #define NROWS 1
 #endif
 /* weight rows fetched ahead in the cols form (their stride is a whole weight row) */
@@ -93,9 +95,10 @@ static inline __attribute__((always_inline)) void cols_block(const int n, int k,
         for (int j = 0; j < n; ++j) acc[r][j] = (vec){0};
     for (int p = 0; p < k; ++p) {
         const float *src = a + i0 + (int64_t)p * acs;
-        if (p + NARROW_AHEAD < k)
+        if (p + NARROW_AHEAD < k) {
 #pragma GCC unroll 4
             for (int r = 0; r < NROWS; ++r) __builtin_prefetch(src + NARROW_AHEAD * acs + r * NVL);
+        }
         vec x[NROWS];
 #pragma GCC unroll 4
         for (int r = 0; r < NROWS; ++r) x[r] = load_u(src + r * NVL);
