@@ -358,7 +358,7 @@ def test_products_under_create_graph_and_the_switch_are_pytorchs(monkeypatch):
 
 
 @pytest.mark.parametrize("size", [(4, 8), (2, 4)])
-def test_weight_heavy_layer_runs_every_product_on_the_register_kernel(size, monkeypatch):
+def test_weight_heavy_layer_runs_every_product_on_a_native_kernel(size, monkeypatch):
     calls = _native_gemm_counter(monkeypatch)
     x, w, b = _operands((1, 64, *size), (512, 64, 3, 3), True, False, torch.float32)
     y = unfold_conv2d(x, w, b, 1, 1)
