@@ -73,6 +73,11 @@ NATIVE_MIN_ROWS, NATIVE_MIN_COLUMNS = 32, 16
 #: kernel) and 17 / 16 ms (MKL), ``W c`` 1.1 / 1.9 ms against 4.2 and 5.7 / 5.6 ms; on one column 1.5 and 0.75 ms
 #: against MKL's matrix-vector products' 1.3 and 1.6 ms.
 NATIVE_WEIGHT_COLUMNS = range(1, 12)
+#: a weight's transpose (the input gradient's ``W^T @ g``) takes the few-column kernel on this many columns: from 12
+#: it runs the columns in groups of 11 over chunks of the weight's rows, each chunk read again from L2, where the
+#: register kernel copies the weight and runs its 32-column panels partly on zero lanes (1024 -> 1024 channels 3x3
+#: on 12 / 16 / 24 columns: 2.4 / 2.6 / 3.6 ms against 4.6 / 6.0 / 5.8 ms; level from 28 to 32)
+NATIVE_WEIGHT_T_COLUMNS = range(1, 25)
 _HAS_USE_COUNT = hasattr(torch._C, "_storage_Use_Count")
 
 _Pair = int | tuple[int, int]
@@ -185,8 +190,9 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
     ``a`` is a weight or its transpose (:data:`NATIVE_WEIGHT_COLUMNS`).
 
     Float32 products that build no autograd graph run on omnidl's register kernel (``omnidl_gemm`` of
-    ``csrc/fixed_conv.c``, :mod:`omnidl.nn.native`; a weight's products on fewer than :data:`NATIVE_MIN_COLUMNS`
-    columns on ``omnidl_gemm_narrow``), which reads ``a`` where it lies when it is a weight and copies
+    ``csrc/fixed_conv.c``, :mod:`omnidl.nn.native`; a weight's products on :data:`NATIVE_WEIGHT_COLUMNS`, or
+    its transpose's on :data:`NATIVE_WEIGHT_T_COLUMNS`, on ``omnidl_gemm_narrow``), which reads ``a`` where it lies
+    when it is a weight and copies
     it block by block first when it is a weight's transpose, and splits its rows among the threads. These
     products have few columns (one per output position, 32 for a ``4x8`` map), where the BLAS runs well below its
     peak: for ``1024 -> 1024`` channels on ``4x8`` (2 threads, an AMD host) the forward took 3.4 against 4.9 ms,
@@ -194,9 +200,11 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
     without the register kernel) is PyTorch's product. Sums run in another order than the BLAS's: the results
     agree to float32 rounding.
     """
+    narrow = weight and b.shape[1] in (NATIVE_WEIGHT_T_COLUMNS if a.stride(0) == 1 and a.stride(1) > 1
+                                       else NATIVE_WEIGHT_COLUMNS)
     lib = (native.library() if NATIVE_PRODUCTS and a.dtype == b.dtype == torch.float32 and a.shape[1]
            and a.shape[0] >= NATIVE_MIN_ROWS and not torch.is_grad_enabled()
-           and (b.shape[1] >= NATIVE_MIN_COLUMNS or weight and b.shape[1] in NATIVE_WEIGHT_COLUMNS)
+           and (b.shape[1] >= NATIVE_MIN_COLUMNS or narrow)
            else None)
     if lib is not None and (out is None or out.stride(1) == 1):
         (m, k), n = a.shape, b.shape[1]
@@ -205,7 +213,7 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
             c.copy_(bias.unsqueeze(1).expand(m, n))
         args = (m, n, k, a.data_ptr(), a.stride(0), a.stride(1), b.data_ptr(), b.stride(0), b.stride(1),
                 c.data_ptr(), c.stride(0), int(bias is not None), max(1, torch.get_num_threads()))
-        rc = lib.omnidl_gemm_narrow(*args) if n < NATIVE_MIN_COLUMNS else 2      # a weight's few columns
+        rc = lib.omnidl_gemm_narrow(*args) if narrow else 2                    # a weight's few columns
         if rc == 2:
             rc = lib.omnidl_gemm(*args)
         if rc == 0:

@@ -1,4 +1,5 @@
-/* A weight's product on few columns: c (m, n) (+)= a (m, k) b (k, n) for n <= NARROW_MAX, float32.
+/* A weight's product on few columns: c (m, n) (+)= a (m, k) b (k, n) for n <= NARROW_MAX (WIDE_MAX for a weight's
+ * transpose), float32.
  *
  * On a small feature map (2x4 positions at the bottom of ResNet-50 for a 128x64 input) the products of a
  * convolution's weight have only a few columns, one per output position: c = W x (the forward) and c = W^T g
@@ -12,7 +13,9 @@
  *         reduced across the lanes at the end;
  *   cols  (a's columns contiguous, ars == 1: a weight's transpose W^T, rows of W side by side): NROWS vectors of
  *         consecutive rows of c at a time, the lanes along m; each step over k loads a piece of one weight row
- *         and multiplies it by n broadcast values of b.
+ *         and multiplies it by n broadcast values of b. On more than NARROW_MAX columns (cols_wide) the columns
+ *         run in groups over chunks of k, the weight's piece read again from L2 (no copy of the weight, where
+ *         the register kernel copies it block by block and runs its 32-column panels partly on zero lanes).
  *
  * The threads split the rows of c. `accumulate` adds to c (a bias written there first) instead of writing it.
  * Vectors are GCC's generic vectors: 16 lanes (one zmm) with AVX-512, 8 with AVX, else 4 (SSE, NEON); with
@@ -115,6 +118,76 @@ static inline __attribute__((always_inline)) void cols_block(const int n, int k,
                 put(c + (int64_t)(i0 + r * NVL + l) * ldc + j, acc[r][j][l], accumulate);
 }
 
+/* the cols form on more columns (up to WIDE_MAX): per block of NROWS * NVL rows of c, the k-steps run in chunks of
+ * KC_WIDE and, within each chunk, the columns in groups of at most NARROW_MAX, the block's sums kept transposed in
+ * `ct` (n, NROWS * NVL). The chunk's piece of the weight (KC_WIDE pieces of rows, 32 KB with AVX-512) comes from
+ * memory for the first group (fetched ahead) and from L2 for the others: no copy of the weight is made. */
+#define KC_WIDE 256
+#define WIDE_MAX 24
+static inline __attribute__((always_inline)) void cols_group(const int nj, int p0, int p1, int k, int i0,
+                                                             const float *a, int64_t acs, const float *b, int64_t brs,
+                                                             int64_t bcs, float *ct, int first, int fetch) {
+    vec acc[NROWS][NARROW_MAX];
+#pragma GCC unroll 4
+    for (int r = 0; r < NROWS; ++r)
+#pragma GCC unroll 16
+        for (int j = 0; j < nj; ++j) acc[r][j] = first ? (vec){0} : *(const vec *)(ct + (j * NROWS + r) * NVL);
+    for (int p = p0; p < p1; ++p) {
+        const float *src = a + i0 + (int64_t)p * acs;
+        if (fetch && p + NARROW_AHEAD < k) {
+#pragma GCC unroll 4
+            for (int r = 0; r < NROWS; ++r) __builtin_prefetch(src + NARROW_AHEAD * acs + r * NVL);
+        }
+        vec x[NROWS];
+#pragma GCC unroll 4
+        for (int r = 0; r < NROWS; ++r) x[r] = load_u(src + r * NVL);
+#pragma GCC unroll 16
+        for (int j = 0; j < nj; ++j) {
+            const float y = b[(int64_t)p * brs + (int64_t)j * bcs];
+#pragma GCC unroll 4
+            for (int r = 0; r < NROWS; ++r) acc[r][j] += x[r] * y;
+        }
+    }
+#pragma GCC unroll 4
+    for (int r = 0; r < NROWS; ++r)
+#pragma GCC unroll 16
+        for (int j = 0; j < nj; ++j) *(vec *)(ct + (j * NROWS + r) * NVL) = acc[r][j];
+}
+
+static void cols_wide(int n, int k, int i0, const float *a, int64_t acs, const float *b, int64_t brs, int64_t bcs,
+                      float *c, int64_t ldc, int accumulate) {
+    vec ctv[WIDE_MAX * NROWS];
+    float *ct = (float *)ctv;
+    for (int p0 = 0; p0 < k; p0 += KC_WIDE) {
+        const int p1 = k - p0 < KC_WIDE ? k : p0 + KC_WIDE;
+        for (int j0 = 0; j0 < n; j0 += NARROW_MAX) {
+            const int nj = n - j0 < NARROW_MAX ? n - j0 : NARROW_MAX;
+            const float *bj = b + (int64_t)j0 * bcs;
+            float *cj = ct + (int64_t)j0 * NROWS * NVL;
+            const int first = p0 == 0, fetch = j0 == 0;
+            switch (nj) {
+#define GROUP(N) cols_group(N, p0, p1, k, i0, a, acs, bj, brs, bcs, cj, first, fetch)
+            case 1: GROUP(1); break;
+            case 2: GROUP(2); break;
+            case 3: GROUP(3); break;
+            case 4: GROUP(4); break;
+            case 5: GROUP(5); break;
+            case 6: GROUP(6); break;
+            case 7: GROUP(7); break;
+            case 8: GROUP(8); break;
+            case 9: GROUP(9); break;
+            case 10: GROUP(10); break;
+            default: GROUP(11); break;
+#undef GROUP
+            }
+        }
+    }
+    for (int r = 0; r < NROWS; ++r)
+        for (int l = 0; l < NVL; ++l)
+            for (int j = 0; j < n; ++j)
+                put(c + (int64_t)(i0 + r * NVL + l) * ldc + j, ct[(j * NROWS + r) * NVL + l], accumulate);
+}
+
 /* the rows of c from i0 (fewer than a whole cols block) in the cols form, one at a time */
 static void cols_tail(int n, int m, int k, int i0, const float *a, int64_t acs, const float *b, int64_t brs,
                       int64_t bcs, float *c, int64_t ldc, int accumulate) {
@@ -142,10 +215,19 @@ static void cols_tail(int n, int m, int k, int i0, const float *a, int64_t acs, 
     }
 
 /* Returns 0; 1 when a buffer cannot be allocated; 2 when the product is not one of the two forms (n outside
- * 1..NARROW_MAX, or neither a's rows nor its columns contiguous): the caller takes another product. */
+ * 1..NARROW_MAX, or 1..WIDE_MAX for the cols form, or neither a's rows nor its columns contiguous): the caller
+ * takes another product. */
 int omnidl_gemm_narrow(int m, int n, int k, const float *a, int64_t ars, int64_t acs, const float *b, int64_t brs,
                        int64_t bcs, float *c, int64_t ldc, int accumulate, int nthreads) {
-    if (n < 1 || n > NARROW_MAX || m < 1 || k < 1) return 2;
+    if (n < 1 || m < 1 || k < 1) return 2;
+    if (ars == 1 && acs > 1 && n > NARROW_MAX && n <= WIDE_MAX) {
+        const int width = NROWS * NVL, blocks = m / width;
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+        for (int s = 0; s < blocks; ++s) cols_wide(n, k, s * width, a, acs, b, brs, bcs, c, ldc, accumulate);
+        cols_tail(n, m, k, blocks * width, a, acs, b, brs, bcs, c, ldc, accumulate);
+        return 0;
+    }
+    if (n > NARROW_MAX) return 2;
     if (acs == 1) {
         float *bt = (float *)malloc(sizeof(float) * (size_t)n * (size_t)k);
         if (!bt) return 1;
