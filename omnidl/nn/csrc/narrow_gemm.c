@@ -13,9 +13,10 @@
  *         reduced across the lanes at the end;
  *   cols  (a's columns contiguous, ars == 1: a weight's transpose W^T, rows of W side by side): NROWS vectors of
  *         consecutive rows of c at a time, the lanes along m; each step over k loads a piece of one weight row
- *         and multiplies it by n broadcast values of b. On more than NARROW_MAX columns (cols_wide) the columns
- *         run in groups over chunks of k, the weight's piece read again from L2 (no copy of the weight, where
- *         the register kernel copies it block by block and runs its 32-column panels partly on zero lanes).
+ *         and multiplies it by n broadcast values of b; up to WIDE_MAX columns, in groups of NARROW_MAX over
+ *         chunks of k, a chunk's piece of the weight read again from L2 by the later groups (no copy of the
+ *         weight, where the register kernel copies it block by block and runs its 32-column panels partly on zero
+ *         lanes).
  *
  * The threads split the rows of c. `accumulate` adds to c (a bias written there first) instead of writing it.
  * Vectors are GCC's generic vectors: 16 lanes (one zmm) with AVX-512, 8 with AVX, else 4 (SSE, NEON); with
@@ -55,6 +56,22 @@ static inline float lane_sum(vec v) {
 
 static inline void put(float *c, float v, int accumulate) { *c = accumulate ? *c + v : v; }
 
+/* F(N, ...) for the number of columns v in 1..NARROW_MAX, N a constant (a loop over N columns unrolled) */
+#define NARROW_CASES(v, F, ...)                                                                                    \
+    switch (v) {                                                                                                   \
+    case 1: F(1, __VA_ARGS__); break;                                                                              \
+    case 2: F(2, __VA_ARGS__); break;                                                                              \
+    case 3: F(3, __VA_ARGS__); break;                                                                              \
+    case 4: F(4, __VA_ARGS__); break;                                                                              \
+    case 5: F(5, __VA_ARGS__); break;                                                                              \
+    case 6: F(6, __VA_ARGS__); break;                                                                              \
+    case 7: F(7, __VA_ARGS__); break;                                                                              \
+    case 8: F(8, __VA_ARGS__); break;                                                                              \
+    case 9: F(9, __VA_ARGS__); break;                                                                              \
+    case 10: F(10, __VA_ARGS__); break;                                                                            \
+    default: F(11, __VA_ARGS__); break;                                                                            \
+    }
+
 /* rows i0 .. i0 + NROWS - 1 (those below m) of the rows form; bt (n, k) is b transposed */
 static inline __attribute__((always_inline)) void rows_block(const int n, int m, int k, int i0, const float *a,
                                                              int64_t ars, const float *bt, float *c, int64_t ldc,
@@ -87,38 +104,7 @@ static inline __attribute__((always_inline)) void rows_block(const int n, int m,
         }
 }
 
-/* rows i0 .. i0 + NROWS * NVL - 1 of c in the cols form (all below m): a[i + p * acs] */
-static inline __attribute__((always_inline)) void cols_block(const int n, int k, int i0, const float *a, int64_t acs,
-                                                             const float *b, int64_t brs, int64_t bcs, float *c,
-                                                             int64_t ldc, int accumulate) {
-    vec acc[NROWS][NARROW_MAX];
-#pragma GCC unroll 4
-    for (int r = 0; r < NROWS; ++r)
-#pragma GCC unroll 16
-        for (int j = 0; j < n; ++j) acc[r][j] = (vec){0};
-    for (int p = 0; p < k; ++p) {
-        const float *src = a + i0 + (int64_t)p * acs;
-        if (p + NARROW_AHEAD < k) {
-#pragma GCC unroll 4
-            for (int r = 0; r < NROWS; ++r) __builtin_prefetch(src + NARROW_AHEAD * acs + r * NVL);
-        }
-        vec x[NROWS];
-#pragma GCC unroll 4
-        for (int r = 0; r < NROWS; ++r) x[r] = load_u(src + r * NVL);
-#pragma GCC unroll 16
-        for (int j = 0; j < n; ++j) {
-            const float y = b[(int64_t)p * brs + (int64_t)j * bcs];
-#pragma GCC unroll 4
-            for (int r = 0; r < NROWS; ++r) acc[r][j] += x[r] * y;
-        }
-    }
-    for (int r = 0; r < NROWS; ++r)
-        for (int l = 0; l < NVL; ++l)
-            for (int j = 0; j < n; ++j)
-                put(c + (int64_t)(i0 + r * NVL + l) * ldc + j, acc[r][j][l], accumulate);
-}
-
-/* the cols form on more columns (up to WIDE_MAX): per block of NROWS * NVL rows of c, the k-steps run in chunks of
+/* the cols form (up to WIDE_MAX columns): per block of NROWS * NVL rows of c, the k-steps run in chunks of
  * KC_WIDE and, within each chunk, the columns in groups of at most NARROW_MAX, the block's sums kept transposed in
  * `ct` (n, NROWS * NVL). The chunk's piece of the weight (KC_WIDE pieces of rows, 32 KB with AVX-512) comes from
  * memory for the first group (fetched ahead) and from L2 for the others: no copy of the weight is made. */
@@ -154,6 +140,7 @@ static inline __attribute__((always_inline)) void cols_group(const int nj, int p
         for (int j = 0; j < nj; ++j) *(vec *)(ct + (j * NROWS + r) * NVL) = acc[r][j];
 }
 
+/* one block of the cols form: rows i0 .. i0 + NROWS * NVL - 1 of c (all below m) */
 static void cols_wide(int n, int k, int i0, const float *a, int64_t acs, const float *b, int64_t brs, int64_t bcs,
                       float *c, int64_t ldc, int accumulate) {
     vec ctv[WIDE_MAX * NROWS];
@@ -165,21 +152,9 @@ static void cols_wide(int n, int k, int i0, const float *a, int64_t acs, const f
             const float *bj = b + (int64_t)j0 * bcs;
             float *cj = ct + (int64_t)j0 * NROWS * NVL;
             const int first = p0 == 0, fetch = j0 == 0;
-            switch (nj) {
-#define GROUP(N) cols_group(N, p0, p1, k, i0, a, acs, bj, brs, bcs, cj, first, fetch)
-            case 1: GROUP(1); break;
-            case 2: GROUP(2); break;
-            case 3: GROUP(3); break;
-            case 4: GROUP(4); break;
-            case 5: GROUP(5); break;
-            case 6: GROUP(6); break;
-            case 7: GROUP(7); break;
-            case 8: GROUP(8); break;
-            case 9: GROUP(9); break;
-            case 10: GROUP(10); break;
-            default: GROUP(11); break;
+#define GROUP(N, ...) cols_group(N, __VA_ARGS__)
+            NARROW_CASES(nj, GROUP, p0, p1, k, i0, a, acs, bj, brs, bcs, cj, first, fetch)
 #undef GROUP
-            }
         }
     }
     for (int r = 0; r < NROWS; ++r)
@@ -199,28 +174,13 @@ static void cols_tail(int n, int m, int k, int i0, const float *a, int64_t acs, 
         }
 }
 
-#define NARROW_CASES(F, ...)                                                                                       \
-    switch (n) {                                                                                                   \
-    case 1: F(1, __VA_ARGS__); break;                                                                              \
-    case 2: F(2, __VA_ARGS__); break;                                                                              \
-    case 3: F(3, __VA_ARGS__); break;                                                                              \
-    case 4: F(4, __VA_ARGS__); break;                                                                              \
-    case 5: F(5, __VA_ARGS__); break;                                                                              \
-    case 6: F(6, __VA_ARGS__); break;                                                                              \
-    case 7: F(7, __VA_ARGS__); break;                                                                              \
-    case 8: F(8, __VA_ARGS__); break;                                                                              \
-    case 9: F(9, __VA_ARGS__); break;                                                                              \
-    case 10: F(10, __VA_ARGS__); break;                                                                            \
-    default: F(11, __VA_ARGS__); break;                                                                            \
-    }
-
 /* Returns 0; 1 when a buffer cannot be allocated; 2 when the product is not one of the two forms (n outside
  * 1..NARROW_MAX, or 1..WIDE_MAX for the cols form, or neither a's rows nor its columns contiguous): the caller
  * takes another product. */
 int omnidl_gemm_narrow(int m, int n, int k, const float *a, int64_t ars, int64_t acs, const float *b, int64_t brs,
                        int64_t bcs, float *c, int64_t ldc, int accumulate, int nthreads) {
     if (n < 1 || m < 1 || k < 1) return 2;
-    if (ars == 1 && acs > 1 && n > NARROW_MAX && n <= WIDE_MAX) {
+    if (ars == 1 && acs > 1 && n <= WIDE_MAX) {
         const int width = NROWS * NVL, blocks = m / width;
 #pragma omp parallel for num_threads(nthreads) schedule(static)
         for (int s = 0; s < blocks; ++s) cols_wide(n, k, s * width, a, acs, b, brs, bcs, c, ldc, accumulate);
@@ -237,21 +197,10 @@ int omnidl_gemm_narrow(int m, int n, int k, const float *a, int64_t ars, int64_t
 #pragma omp parallel for num_threads(nthreads) schedule(static)
         for (int s = 0; s < blocks; ++s) {
 #define ROWS_CASE(N, ...) rows_block(N, __VA_ARGS__)
-            NARROW_CASES(ROWS_CASE, m, k, s * NROWS, a, ars, bt, c, ldc, accumulate)
+            NARROW_CASES(n, ROWS_CASE, m, k, s * NROWS, a, ars, bt, c, ldc, accumulate)
 #undef ROWS_CASE
         }
         free(bt);
-        return 0;
-    }
-    if (ars == 1) {
-        const int width = NROWS * NVL, blocks = m / width;
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-        for (int s = 0; s < blocks; ++s) {
-#define COLS_CASE(N, ...) cols_block(N, __VA_ARGS__)
-            NARROW_CASES(COLS_CASE, k, s * width, a, acs, b, brs, bcs, c, ldc, accumulate)
-#undef COLS_CASE
-        }
-        cols_tail(n, m, k, blocks * width, a, acs, b, brs, bcs, c, ldc, accumulate);
         return 0;
     }
     return 2;
