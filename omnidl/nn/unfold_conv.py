@@ -192,8 +192,8 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
     Float32 products that build no autograd graph run on omnidl's register kernel (``omnidl_gemm`` of
     ``csrc/fixed_conv.c``, :mod:`omnidl.nn.native`; a weight's products on :data:`NATIVE_WEIGHT_COLUMNS`, or
     its transpose's on :data:`NATIVE_WEIGHT_T_COLUMNS`, on ``omnidl_gemm_narrow``), which reads ``a`` where it lies
-    when it is a weight and copies
-    it block by block first when it is a weight's transpose, and splits its rows among the threads. These
+    when it is a weight and copies it block by block first when it is a weight's transpose, and splits its rows
+    among the threads. These
     products have few columns (one per output position, 32 for a ``4x8`` map), where the BLAS runs well below its
     peak: for ``1024 -> 1024`` channels on ``4x8`` (2 threads, an AMD host) the forward took 3.4 against 4.9 ms,
     the input gradient's ``W^T g`` 3.1 against 6.6 ms, the weight gradient 4.3 against 5.7 ms. Everything else (float64, ``create_graph``, no native library or a build

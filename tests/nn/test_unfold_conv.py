@@ -333,13 +333,20 @@ def test_products_on_the_register_kernel(name, m, k, n, at, bt, wide, bias, nati
     _check_product(m, k, n, at, bt, wide, bias, native, monkeypatch)
 
 
-def _check_product(m, k, n, at, bt, wide, bias, native, monkeypatch, weight=False, tol=1e-6):
-    calls = _native_gemm_counter(monkeypatch)
+def _product_operands(m, k, n, at, bt, wide, bias):
+    """``a (m, k)`` (a transpose's view where ``at``), ``b (k, n)`` (likewise ``bt``), ``c`` (rows of a wider
+    matrix where ``wide``, else None) and a bias of ``m`` values (or None), seeded by the shape."""
     g = torch.Generator().manual_seed(m + n)
     a = torch.randn(k, m, generator=g).t() if at else torch.randn(m, k, generator=g)
     b = torch.randn(n, k, generator=g).t() if bt else torch.randn(k, n, generator=g)
     c = torch.randn(m, n + 7, generator=g)[:, 3:3 + n] if wide else None
     bb = torch.randn(m, generator=g) if bias else None
+    return a, b, c, bb
+
+
+def _check_product(m, k, n, at, bt, wide, bias, native, monkeypatch, weight=False, tol=1e-6):
+    calls = _native_gemm_counter(monkeypatch)
+    a, b, c, bb = _product_operands(m, k, n, at, bt, wide, bias)
     with torch.no_grad():                                  # as in autograd's forward and backward
         y = U._product(a, b, out=c, bias=bb, weight=weight)
     assert len(calls) == int(bool(native))
@@ -385,8 +392,8 @@ def test_weight_heavy_layer_runs_every_product_on_a_native_kernel(size, monkeypa
 
 @pytest.mark.parametrize("build", ["generic_x86_build", "avx2_build"])
 def test_the_few_column_kernel_of_other_builds(build, request):
-    """``omnidl_gemm_narrow`` built without AVX-512 (8-lane vectors, one row or vector at a time): every case of the
-    few-column table against float64."""
+    """``omnidl_gemm_narrow`` built without AVX-512 (8 lanes with AVX2, 4 on plain x86-64; one row or vector at a
+    time): every case of the few-column table against float64."""
     from omnidl.nn import native
     request.getfixturevalue(build)
     lib = native.library()
@@ -395,11 +402,8 @@ def test_the_few_column_kernel_of_other_builds(build, request):
     for name, m, k, n, at, wide, bias, weight, kernel in FEW_COLUMNS:
         if kernel != NARROW:
             continue
-        g = torch.Generator().manual_seed(m + n)
-        a = torch.randn(k, m, generator=g).t() if at else torch.randn(m, k, generator=g)
-        b = torch.randn(k, n, generator=g)
-        c = torch.randn(m, n + 7, generator=g)[:, 3:3 + n] if wide else torch.empty(m, n)
-        bb = torch.randn(m, generator=g) if bias else None
+        a, b, c, bb = _product_operands(m, k, n, at, False, wide, bias)
+        c = torch.empty(m, n) if c is None else c
         if bb is not None:
             c.copy_(bb.unsqueeze(1).expand(m, n))
         rc = lib.omnidl_gemm_narrow(m, n, k, a.data_ptr(), a.stride(0), a.stride(1), b.data_ptr(), b.stride(0),
