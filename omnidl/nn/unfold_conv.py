@@ -78,6 +78,13 @@ NATIVE_WEIGHT_COLUMNS = range(1, 12)
 #: register kernel copies the weight and runs its 32-column panels partly on zero lanes (1024 -> 1024 channels 3x3
 #: on 12 / 16 / 24 columns: 2.4 / 2.6 / 3.6 ms against 4.6 / 6.0 / 5.8 ms; level from 28 to 32)
 NATIVE_WEIGHT_T_COLUMNS = range(1, 25)
+#: a product that is not a weight's (the weight gradient ``g @ cols^T``, a sum over the positions) runs on the
+#: register kernel only while that sum is shorter than this; longer ones run on the BLAS, which was faster on every
+#: such product of FreDSNet's training step (2 threads, an AMD host, timed inside the step at 64x128, 128x256 and
+#: 256x512): 64 rows, 2048 positions, 256 columns 0.58 against 0.91 ms; 128 rows, 8192 positions, 16 columns 0.31
+#: against 0.69 ms; 128 rows, 2048 positions, 512 columns 1.85 against 2.64 ms. Sums over 128 positions (a 1024- or
+#: 512-channel layer's on 8x16) stay, 1.3-1.5x faster than the BLAS's
+NATIVE_MAX_GRADIENT_SUM = 2048
 _HAS_USE_COUNT = hasattr(torch._C, "_storage_Use_Count")
 
 _Pair = int | tuple[int, int]
@@ -196,15 +203,16 @@ def _product(a: Tensor, b: Tensor, out: Tensor | None = None, bias: Tensor | Non
     among the threads. These
     products have few columns (one per output position, 32 for a ``4x8`` map), where the BLAS runs well below its
     peak: for ``1024 -> 1024`` channels on ``4x8`` (2 threads, an AMD host) the forward took 3.4 against 4.9 ms,
-    the input gradient's ``W^T g`` 3.1 against 6.6 ms, the weight gradient 4.3 against 5.7 ms. Everything else (float64, ``create_graph``, no native library or a build
-    without the register kernel) is PyTorch's product. Sums run in another order than the BLAS's: the results
-    agree to float32 rounding.
+    the input gradient's ``W^T g`` 3.1 against 6.6 ms, the weight gradient 4.3 against 5.7 ms. Everything else
+    (float64, ``create_graph``, no native library or a build without the register kernel, a product that is not a
+    weight's over a sum of :data:`NATIVE_MAX_GRADIENT_SUM` or more) is PyTorch's product. Sums run in another order
+    than the BLAS's: the results agree to float32 rounding.
     """
     narrow = weight and b.shape[1] in (NATIVE_WEIGHT_T_COLUMNS if a.stride(0) == 1 and a.stride(1) > 1
                                        else NATIVE_WEIGHT_COLUMNS)
     lib = (native.library() if NATIVE_PRODUCTS and a.dtype == b.dtype == torch.float32 and a.shape[1]
            and a.shape[0] >= NATIVE_MIN_ROWS and not torch.is_grad_enabled()
-           and (b.shape[1] >= NATIVE_MIN_COLUMNS or narrow)
+           and (b.shape[1] >= NATIVE_MIN_COLUMNS or narrow) and (weight or a.shape[1] < NATIVE_MAX_GRADIENT_SUM)
            else None)
     if lib is not None and (out is None or out.stride(1) == 1):
         (m, k), n = a.shape, b.shape[1]

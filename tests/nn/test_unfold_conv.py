@@ -293,6 +293,8 @@ PRODUCTS = [
      False, True, True, True),
     ("too few rows: PyTorch's", 31, 64, 64, False, False, False, True, False),
     ("too few columns: PyTorch's", 64, 64, 15, True, False, False, False, False),
+    ("weight gradient summed over 2047 positions: the register kernel", 64, 2047, 96, False, True, False, False, True),
+    ("weight gradient summed over 2048 positions: PyTorch's", 64, 2048, 96, False, True, False, False, False),
 ]
 
 
