@@ -28,6 +28,16 @@ extern void sgemm_(const char *ta, const char *tb, const int *m, const int *n, c
  * lower-case symbol is the Fortran one, taking a pointer); weak: absent from other BLAS libraries */
 extern int MKL_Set_Num_Threads_Local(int n) __attribute__((weak));
 
+/* cache lines to fetch into L2 while tiles run (the next block of an operand copied block by block, so that the
+ * copy finds it there): `lines` in all, `cols` per row, rows `rs` floats apart from `base`; line l is at
+ * base + (l / cols) * rs + (l % cols) * 16. kernel_tile takes lines [from, to), one per k-step (the rest after its
+ * last step): fetched all at once, they stalled the loads of the copy that follows (AVX2: all at the start). */
+typedef struct {
+    const float *base;
+    int64_t rs;
+    int cols, lines;
+} ahead_t;
+
 #if defined(__AVX512F__)
 #include <immintrin.h>
 #define MR 12
@@ -45,14 +55,17 @@ extern int MKL_Set_Num_Threads_Local(int n) __attribute__((weak));
 #endif
 
 /* c (mr, nr) (+)= a (mr, k) b (k, 32) (+ bias): a[i * rs + p * cs], b[p * 32 + j] (a packed panel, zero beyond nr);
- * `prefetch`: the panel's rows B_PREFETCH k-steps ahead are prefetched (its first pass in gemm_chunk).
+ * `prefetch`: the panel's rows B_PREFETCH k-steps ahead are prefetched (its first pass in gemm_chunk); lines
+ * [from, to) of `ah` (or none: NULL) are fetched into L2, one per k-step.
  * 24 zmm accumulators; rows beyond mr re-read row 0 and are not stored. `accumulate`: 0 writes c, 1 adds to it, 2
  * writes it with non-temporal stores where a row is whole and aligned (see STREAMING). `bias` (nr values, or NULL)
  * is added to every row, with c first when accumulating: the sum is a b + (c + bias), as when the bias was added to
  * c before the call, without a pass over c to do so. */
 static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
-                        int accumulate, int mr, int nr, const float *bias, int prefetch) {
+                        int accumulate, int mr, int nr, const float *bias, int prefetch, const ahead_t *ah, int from,
+                        int to) {
     __m512 acc[MR][2];
+    int row = ah && from < to ? from / ah->cols : 0, col = ah && from < to ? from % ah->cols : 0;
     int64_t off[MR];
     for (int i = 0; i < MR; ++i) {
         acc[i][0] = acc[i][1] = _mm512_setzero_ps();
@@ -64,6 +77,14 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
             _mm_prefetch((const char *)(b + NR * (p + B_PREFETCH)), _MM_HINT_T0);
             _mm_prefetch((const char *)(b + NR * (p + B_PREFETCH) + 16), _MM_HINT_T0);
         }
+        if (from < to) {    /* one line of the next block per k-step (ah is set where from < to) */
+            _mm_prefetch((const char *)(ah->base + row * ah->rs + col * 16), _MM_HINT_T1);
+            ++from;
+            if (++col == ah->cols) {
+                col = 0;
+                ++row;
+            }
+        }
         const float *ap = a + p * cs;
 #pragma GCC unroll 12
         for (int i = 0; i < MR; ++i) {
@@ -72,6 +93,8 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
             acc[i][1] = _mm512_fmadd_ps(t, b1, acc[i][1]);
         }
     }
+    for (; from < to; ++from)
+        _mm_prefetch((const char *)(ah->base + (from / ah->cols) * ah->rs + (from % ah->cols) * 16), _MM_HINT_T1);
     const __mmask16 m0 = nr >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << nr) - 1u);
     const __mmask16 m1 = nr >= 32 ? (__mmask16)0xFFFF : nr <= 16 ? (__mmask16)0 : (__mmask16)((1u << (nr - 16)) - 1u);
     const __m512 bias0 = bias ? _mm512_maskz_loadu_ps(m0, bias) : _mm512_setzero_ps();
@@ -112,8 +135,11 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
 /* c (mr, nr) (+)= a (mr, k) b (k, 16) (+ bias): a[i * rs + p * cs], b[p * 16 + j] (a packed panel, zero beyond nr).
  * `accumulate` and `bias` as the AVX-512 kernel's. */
 static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
-                        int accumulate, int mr, int nr, const float *bias, int prefetch) {
+                        int accumulate, int mr, int nr, const float *bias, int prefetch, const ahead_t *ah, int from,
+                        int to) {
     (void)prefetch;   /* the AVX-512 kernel's B_PREFETCH only */
+    for (; ah && from < to; ++from)
+        _mm_prefetch((const char *)(ah->base + (from / ah->cols) * ah->rs + (from % ah->cols) * 16), _MM_HINT_T1);
     __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00;
     __m256 c30 = c00, c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00;
     const float *a0 = a, *a1 = a + (mr > 1 ? rs : 0), *a2 = a + (mr > 2 ? 2 * rs : 0);
@@ -193,17 +219,21 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
 #define B_RESIDENT (192 * 1024)
 #endif
 /* one chunk of kb k-values of gemm_packed: MR-row sliver s of a starts at a + s * ss, element (i, p) of it at
- * [i * rs + p * cs]; panel q of b (this chunk's kb rows) at bp + q * ps */
+ * [i * rs + p * cs]; panel q of b (this chunk's kb rows) at bp + q * ps; the lines of `ah` (or NULL) shared out
+ * over the tiles in the order they run */
 static void gemm_chunk(int m, int n, int kb, const float *a, int64_t ss, int64_t rs, int64_t cs, const float *bp,
-                       int64_t ps, float *c, int64_t ldc, int accumulate, const float *bias) {
-    const int panels = (n + NR - 1) / NR, slivers = (m + MR - 1) / MR;
+                       int64_t ps, float *c, int64_t ldc, int accumulate, const float *bias, const ahead_t *ah) {
+    const int panels = (n + NR - 1) / NR, slivers = (m + MR - 1) / MR, tiles = panels * slivers;
+    const int lines = ah ? ah->lines : 0;
     const int rows_outer = (int64_t)kb * panels * NR * (int64_t)sizeof(float) <= B_RESIDENT;
     for (int outer = 0; outer < (rows_outer ? slivers : panels); ++outer) {
         for (int inner = 0; inner < (rows_outer ? panels : slivers); ++inner) {
             const int s = rows_outer ? outer : inner, q = rows_outer ? inner : outer;
             const int i = s * MR, nr = n - q * NR < NR ? n - q * NR : NR;
+            const int t = outer * (rows_outer ? panels : slivers) + inner;   /* tiles run before this one */
             kernel_tile(kb, a + s * ss, rs, cs, bp + q * ps, c + i * ldc + q * NR, ldc, accumulate,
-                        m - i < MR ? m - i : MR, nr, bias ? bias + q * NR : NULL, rows_outer ? outer == 0 : inner == 0);
+                        m - i < MR ? m - i : MR, nr, bias ? bias + q * NR : NULL, rows_outer ? outer == 0 : inner == 0,
+                        ah, (int)((int64_t)lines * t / tiles), (int)((int64_t)lines * (t + 1) / tiles));
         }
     }
 }
@@ -213,7 +243,7 @@ static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t
     for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
         const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
         gemm_chunk(m, n, kb, a + p0 * cs, MR * rs, rs, cs, bp + (int64_t)p0 * NR, (int64_t)k * NR, c, ldc,
-                   p0 > 0 ? 1 : accumulate, p0 > 0 ? NULL : bias);
+                   p0 > 0 ? 1 : accumulate, p0 > 0 ? NULL : bias, NULL);
     }
 }
 
@@ -221,35 +251,62 @@ static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t
  * per k-step). Read where it lies, each MR-row sliver would take a short piece of every weight row: a stride the
  * hardware prefetchers do not follow, and the rows of a weight whose length is a multiple of 1024 floats all fall
  * in one L1 set (1024 -> 1024 channels, 3x3: W^T g took 16-17 ms against 5 ms for the forward W x on one host).
- * So each block of A_BLOCK slivers x KC_BLOCK k-values is first copied, the weight's rows read in order and
- * PACK_AHEAD rows ahead prefetched, into `ap` (A_BLOCK * MR * KC_BLOCK floats: sliver by sliver, MR values per
- * k-step, contiguous) and run from there in gemm_packed's order. (-D overrides: A/B builds of the benchmarks;
- * A_BLOCK 0 reads a where it lies.) */
+ * So each block of A_BLOCK slivers x KC_BLOCK k-values is first copied into `ap` (A_BLOCK * MR * KC_BLOCK floats:
+ * sliver by sliver, MR values per k-step, contiguous) and run from there in gemm_packed's order.
+ * The copy takes COPY_GROUP weight rows at a time, sliver by sliver, so that each sliver's destination is written
+ * in whole cache lines (row by row, the A_BLOCK destinations of one row lie 12 KB apart, in one L1 set, and their
+ * partly written lines were evicted and read back), the rows PACK_AHEAD ahead prefetched. While a block runs, the
+ * next block's weight rows are fetched into L2, one cache line per k-step of its tiles (ahead_t; ROWS_AHEAD 0 turns
+ * it off). W^T g from memory on 2 threads of a Zen 4 guest, 1024 -> 1024 channels 3x3 on 4x8: 4.0 ms against 4.1
+ * with the grouped copy alone and 4.6-4.7 before both; 512 -> 512 on 4x8 0.96 against 1.09 and 1.20; on 8x16 (128
+ * columns) 3.1 against 3.2 and 3.35. (-D overrides: A/B builds of the benchmarks; A_BLOCK 0 reads a where it
+ * lies.) */
 #ifndef PACK_AHEAD
 #define PACK_AHEAD 8
 #endif
 #ifndef A_BLOCK
 #define A_BLOCK 16
 #endif
+#define COPY_GROUP 8
+#ifndef ROWS_AHEAD
+#define ROWS_AHEAD 1
+#endif
+/* the first `rows` values of kb weight rows (cs floats apart) from a, sliver by sliver, into ap */
+static void copy_rows_block(int rows, int kb, const float *a, int64_t cs, float *ap) {
+    const int slivers = (rows + MR - 1) / MR;
+    for (int pg = 0; pg < kb; pg += COPY_GROUP) {
+        const int gr = kb - pg < COPY_GROUP ? kb - pg : COPY_GROUP;
+        for (int r = 0; r < gr; ++r) {        /* a hint: never faults past the weight's end */
+            const float *ahead = a + (int64_t)(pg + r + PACK_AHEAD) * cs;
+            for (int j = 0; j < rows; j += 16) _mm_prefetch((const char *)(ahead + j), _MM_HINT_T0);
+        }
+        for (int s = 0; s < slivers; ++s) {
+            const int w = rows - s * MR >= MR ? MR : rows - s * MR;
+            float *d = ap + ((int64_t)s * kb + pg) * MR;
+            const float *src = a + (int64_t)pg * cs + s * MR;
+            if (w == MR)
+                for (int r = 0; r < gr; ++r) memcpy(d + r * MR, src + r * cs, MR * sizeof(float));
+            else
+                for (int r = 0; r < gr; ++r) memcpy(d + r * MR, src + r * cs, (size_t)w * sizeof(float));
+        }
+    }
+}
+
 static void gemm_packed_rows(int m, int n, int k, const float *a, int64_t cs, const float *bp, float *c, int64_t ldc,
                              int accumulate, float *ap) {
     for (int i0 = 0; i0 < m; i0 += A_BLOCK * MR) {
-        const int rows = m - i0 < A_BLOCK * MR ? m - i0 : A_BLOCK * MR, slivers = (rows + MR - 1) / MR;
+        const int rows = m - i0 < A_BLOCK * MR ? m - i0 : A_BLOCK * MR;
         for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
             const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
-            for (int p = 0; p < kb; ++p) {
-                const float *src = a + i0 + (int64_t)(p0 + p) * cs;
-                for (int s = 0; s < slivers; ++s) {
-                    _mm_prefetch((const char *)(src + PACK_AHEAD * cs + s * MR), _MM_HINT_T0);
-                    float *d = ap + ((int64_t)s * kb + p) * MR;
-                    if (rows - s * MR >= MR)
-                        memcpy(d, src + s * MR, MR * sizeof(float));
-                    else
-                        memcpy(d, src + s * MR, (size_t)(rows - s * MR) * sizeof(float));
-                }
-            }
+            copy_rows_block(rows, kb, a + i0 + (int64_t)p0 * cs, cs, ap);
+            /* the next block: the next chunk of k, or the first of the next rows */
+            const int q0 = p0 + KC_BLOCK < k ? p0 + KC_BLOCK : 0, n0 = q0 ? i0 : i0 + A_BLOCK * MR;
+            const int nrows = n0 >= m ? 0 : m - n0 < A_BLOCK * MR ? m - n0 : A_BLOCK * MR;
+            const int nkb = k - q0 < KC_BLOCK ? k - q0 : KC_BLOCK;
+            const ahead_t next = {a + n0 + (int64_t)q0 * cs, cs, (nrows + 15) / 16 + 1,
+                                  ROWS_AHEAD && nrows ? nkb * ((nrows + 15) / 16 + 1) : 0};
             gemm_chunk(rows, n, kb, ap, (int64_t)kb * MR, 1, MR, bp + (int64_t)p0 * NR, (int64_t)k * NR,
-                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL);
+                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL, &next);
         }
     }
 }
@@ -275,7 +332,9 @@ static int rows_alias(int64_t rs, int64_t cs) {
 
 /* gemm_packed for an `a` with rows_alias: per chunk of KC_BLOCK k-values, each block of rows is first copied row by
  * row into `ap` (A_BLOCK * MR * COPY_LDA floats) at the padded stride COPY_LDA and run from there, while the next
- * block's rows are fetched into L2 (4-5 % faster than without). A block is one sliver where the chunk of b stays in
+ * block's rows are fetched into L2, one cache line per k-step of its tiles (ahead_t; 1024 x 9216 by 9216 x 32 from
+ * memory on 2 threads of a Zen 4 guest: 3.8-3.9 ms against 4.1-4.2 with the lines fetched all at once before the
+ * tiles, 4.9 without; 3.1 ms on rows 16 floats apart, read in place). A block is one sliver where the chunk of b stays in
  * L2 (gemm_chunk's rows-outer order: the copy then sits in L1; 1024 x 9216 by 9216 x 128 on 2 threads, 8 % slower
  * than the same product on rows 16 floats apart, against 11 % with blocks of 16 slivers), else A_BLOCK slivers
  * (each runs past every panel held in L1). */
@@ -292,11 +351,10 @@ static void gemm_packed_copied(int m, int n, int k, const float *a, int64_t rs, 
             const int nkb = q0 >= k ? 0 : k - q0 < KC_BLOCK ? k - q0 : KC_BLOCK;
             for (int i = 0; i < rows; ++i)
                 memcpy(ap + (int64_t)i * COPY_LDA, a + (int64_t)(i0 + i) * rs + p0, sizeof(float) * (size_t)kb);
-            for (int i = 0; COPY_AHEAD && i < nrows; ++i)
-                for (int j = 0; j < nkb; j += 16)
-                    _mm_prefetch((const char *)(a + (int64_t)(n0 + i) * rs + q0 + j), _MM_HINT_T1);
+            const ahead_t next = {a + (int64_t)n0 * rs + q0, rs, (nkb + 15) / 16 + 1,
+                                  COPY_AHEAD ? nrows * ((nkb + 15) / 16 + 1) : 0};
             gemm_chunk(rows, n, kb, ap, (int64_t)MR * COPY_LDA, COPY_LDA, 1, bp + (int64_t)p0 * NR, (int64_t)k * NR,
-                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, p0 > 0 ? NULL : bias);
+                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, p0 > 0 ? NULL : bias, &next);
         }
     }
 }
