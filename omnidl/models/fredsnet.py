@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.nn.ffc import FourierBlock
-from omnidl.nn import tap_projection
+from omnidl.nn import batch_norm, tap_projection
 from omnidl.nn.capture import capturing
 from omnidl.nn import fusion
 from omnidl.nn.fusion import RowMap, UpsampleSum, blocked_conv, can_block, rows_per_block, upsample_sum
@@ -267,6 +267,7 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
             nn.init.constant_(self.depth_head.out.conv.bias, float(depth_bias_init))
         self.channels_last = check_policy(channels_last, "FreDSNet")
         self.apply_memory_format()
+        batch_norm.convert(self)        # the training forward of batch norm on NCHW maps natively (omnidl.nn.batch_norm)
 
     def check_input(self, x: Tensor) -> None:
         """Raise a ``ValueError`` unless ``x`` is ``(B, 3, H, W)`` with ``H, W`` multiples of 32."""

@@ -26,7 +26,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import native
+from . import batch_norm, native
 from .capture import capturing
 from .prelu import PReLU
 
@@ -45,7 +45,8 @@ def _act_code(act: nn.Module) -> int | None:
 
 def applies(x: Tensor, conv: nn.Module, bn: nn.Module, act: nn.Module) -> bool:
     """Whether :func:`expansion` runs ``act(bn(conv(x)))`` natively (see the module docstring)."""
-    if not (ENABLED and type(conv) is nn.Conv2d and type(bn) is nn.BatchNorm2d and bn.training):
+    if not (ENABLED and type(conv) is nn.Conv2d and type(bn) in (nn.BatchNorm2d, batch_norm.BatchNorm2d)
+            and bn.training):
         return False
     if not (conv.kernel_size == (1, 1) and conv.stride == (1, 1) and conv.padding == (0, 0)
             and conv.groups == 1 and conv.padding_mode == "zeros" and conv.in_channels <= MAX_IN_CHANNELS):

@@ -1,0 +1,154 @@
+"""omnidl.nn.batch_norm: the native training forward against nn.BatchNorm2d's own."""
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+import torch.nn as nn
+
+from omnidl.nn import batch_norm, native
+
+pytestmark = pytest.mark.skipif(native.library() is None, reason="native library not built")
+
+
+def _pair(C: int, **kw) -> tuple[nn.BatchNorm2d, nn.BatchNorm2d]:
+    """A plain nn.BatchNorm2d with random affine parameters and running statistics, and a converted copy."""
+    ref = nn.BatchNorm2d(C, **kw)
+    g = torch.Generator().manual_seed(C)
+    with torch.no_grad():
+        if ref.affine:
+            ref.weight.uniform_(0.5, 1.5, generator=g)
+            ref.bias.normal_(generator=g)
+        if ref.track_running_stats:
+            ref.running_mean.normal_(generator=g)
+            ref.running_var.uniform_(0.5, 2.0, generator=g)
+    return ref, batch_norm.convert(copy.deepcopy(ref))
+
+
+def _native_calls(monkeypatch) -> list:
+    calls: list = []
+    lib = native.library()
+    real = lib.omnidl_bn_train
+
+    def counted(*args):
+        calls.append(args[1:4])
+        return real(*args)
+    monkeypatch.setattr(lib, "omnidl_bn_train", counted)
+    return calls
+
+
+# (name, input shape (B, C, H, W), nn.BatchNorm2d keywords): each runs natively and must match nn.BatchNorm2d
+CASES = [
+    ("one image, planes of whole vectors", (1, 8, 16, 32), {}),
+    ("a batch, ragged planes", (3, 5, 7, 9), {}),
+    ("planes shorter than a vector", (2, 16, 2, 3), {}),
+    ("many channels on a 4x8 map", (1, 512, 4, 8), {}),
+    ("cumulative average (momentum None)", (2, 4, 5, 6), {"momentum": None}),
+    ("no affine parameters", (2, 4, 5, 6), {"affine": False}),
+    ("no running statistics", (2, 4, 5, 6), {"track_running_stats": False}),
+    ("two values per channel", (2, 3, 1, 1), {}),
+]
+
+
+@pytest.mark.parametrize("name,shape,kw", CASES, ids=[c[0] for c in CASES])
+def test_training_forward_and_backward_match_pytorch(name, shape, kw, monkeypatch):
+    calls = _native_calls(monkeypatch)
+    ref, new = _pair(shape[1], **kw)
+    g = torch.Generator().manual_seed(1)
+    x = (torch.randn(shape, generator=g) * 3 + 1).requires_grad_()
+    x2 = x.detach().clone().requires_grad_()
+    gy = torch.randn(shape, generator=g)
+    for _ in range(2):                                   # the running statistics' update twice
+        y1, y2 = ref(x), new(x2)
+        y1.backward(gy)
+        y2.backward(gy)
+    assert len(calls) == 2 and type(new) is batch_norm.BatchNorm2d
+    torch.testing.assert_close(y2, y1, rtol=0, atol=1e-5)
+    assert y2.is_contiguous()
+    torch.testing.assert_close(x2.grad, x.grad, rtol=1e-5, atol=1e-5)
+    if ref.affine:
+        torch.testing.assert_close(new.weight.grad, ref.weight.grad, rtol=1e-5, atol=1e-4)
+        torch.testing.assert_close(new.bias.grad, ref.bias.grad, rtol=1e-5, atol=1e-4)
+    for key, value in ref.state_dict().items():
+        torch.testing.assert_close(new.state_dict()[key], value, rtol=1e-6, atol=1e-6)
+
+
+def test_statistics_of_a_large_offset_are_exact():
+    # float64 sums: a map of values 1e4 + N(0, 1) normalises to unit variance, as PyTorch's
+    ref, new = _pair(4)
+    x = 1e4 + torch.randn(2, 4, 33, 65, generator=torch.Generator().manual_seed(3))
+    y = new(x)
+    torch.testing.assert_close(y, ref(x), rtol=0, atol=2e-3)
+    xd = x.double()
+    mean, var = xd.mean((0, 2, 3)), xd.var((0, 2, 3), unbiased=False)
+    want = (xd - mean[:, None, None]) / (var[:, None, None] + new.eps).sqrt()
+    want = want * new.weight.double()[:, None, None] + new.bias.double()[:, None, None]
+    torch.testing.assert_close(y.double(), want, rtol=0, atol=2e-4)
+
+
+def test_second_derivatives_under_create_graph_are_autograds():
+    ref, new = _pair(3)
+    x = torch.randn(2, 3, 4, 5, dtype=torch.float32, generator=torch.Generator().manual_seed(4), requires_grad=True)
+    out = []
+    for m in (ref, new):
+        y = m(x)
+        (gx,) = torch.autograd.grad((y ** 2).sum(), x, create_graph=True)
+        (ggx,) = torch.autograd.grad(gx.sum(), x)
+        out.append((gx, ggx))
+    torch.testing.assert_close(out[1][0], out[0][0], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out[1][1], out[0][1], rtol=1e-4, atol=1e-4)
+
+
+def _eval(bn, x):
+    bn.eval()
+    return x
+
+
+# (name, how to make the case from (module, input), the error PyTorch gives or None): nn.BatchNorm2d's own forward
+FALLBACKS = [
+    ("eval mode", _eval, None),
+    ("channels-last input", lambda bn, x: x.contiguous(memory_format=torch.channels_last), None),
+    ("a channel slice (not contiguous)", lambda bn, x: torch.cat([x, x], 1)[:, ::2], None),
+    ("float64", lambda bn, x: (bn.double(), x.double())[1], None),
+    ("one value per channel", lambda bn, x: x[:1, :, :1, :1], ValueError),
+    ("3-d input", lambda bn, x: x[0], ValueError),
+    ("switched off", lambda bn, x: x, None),
+]
+
+
+@pytest.mark.parametrize("name,make,error", FALLBACKS, ids=[c[0] for c in FALLBACKS])
+def test_other_inputs_take_pytorchs_forward(name, make, error, monkeypatch):
+    calls = _native_calls(monkeypatch)
+    if name == "switched off":
+        monkeypatch.setattr(batch_norm, "ENABLED", False)
+    ref, new = _pair(4)
+    x = torch.randn(2, 4, 6, 8, generator=torch.Generator().manual_seed(5))
+    xr, xn = make(ref, x.clone()), make(new, x.clone())
+    if error is not None:
+        with pytest.raises(error):
+            new(xn)
+        with pytest.raises(error):
+            ref(xr)
+    else:
+        torch.testing.assert_close(new(xn), ref(xr), rtol=0, atol=0)
+        torch.testing.assert_close(new.running_var, ref.running_var, rtol=0, atol=0)
+    assert calls == []
+
+
+def test_convert_keeps_subclasses_and_state_dict_keys():
+    class Own(nn.BatchNorm2d):
+        pass
+    m = nn.Sequential(nn.Conv2d(3, 4, 1), nn.BatchNorm2d(4), Own(4), nn.Sequential(nn.BatchNorm2d(4)))
+    keys = list(m.state_dict())
+    batch_norm.convert(m)
+    assert [type(x) for x in (m[1], m[2], m[3][0])] == [batch_norm.BatchNorm2d, Own, batch_norm.BatchNorm2d]
+    assert list(m.state_dict()) == keys
+    assert isinstance(m[1], nn.BatchNorm2d)
+
+
+def test_fredsnet_converts_its_batch_norms():
+    from omnidl.models.fredsnet import FreDSNet
+    model = FreDSNet(backbone="resnet18", width=0.25)
+    norms = [m for m in model.modules() if isinstance(m, nn.BatchNorm2d)]
+    assert norms and all(type(m) is batch_norm.BatchNorm2d for m in norms)
