@@ -6,9 +6,11 @@ threads). A FreDSNet training step at 256x128 runs about 145 of them, most on NC
 :class:`BatchNorm2d` is ``nn.BatchNorm2d`` (same parameters, buffers and state dict) whose training forward, where
 :func:`applies`, computes each channel's mean and biased variance over the batch (float64 sums), writes the
 normalised map and updates the running statistics as ``nn.BatchNorm2d`` does (``num_batches_tracked``, the
-unbiased variance, ``momentum`` or the cumulative average); its backward is PyTorch's own batch norm backward
-(``native_batch_norm_backward``) on the saved mean and inverse standard deviation, and under ``create_graph``
-autograd's over ``F.batch_norm`` (differentiable again). Everything else is ``nn.BatchNorm2d``'s forward.
+unbiased variance, ``momentum`` or the cumulative average). Its backward, from the saved mean and inverse
+standard deviation, is one native pass for the two sums per channel and one for the input's gradient (0.15 against
+0.37 ms for PyTorch's ``native_batch_norm_backward`` at 128 channels on 64x128), that backward for a gradient in
+another layout, and autograd's over ``F.batch_norm`` under ``create_graph`` (differentiable again). Everything else
+is ``nn.BatchNorm2d``'s forward.
 
 :func:`convert` turns a model's plain ``nn.BatchNorm2d`` modules into this class in place (FreDSNet does so when
 built).
@@ -104,7 +106,21 @@ class _TrainingBatchNorm(torch.autograd.Function):
                 grads = iter(torch.autograd.grad(y, inputs, gy, create_graph=True))
             gx, gw, gb = (next(grads) if need else None for need in (need_x, need_w, need_b))
             return gx, gw, gb, None, None, None, None
-        gx, gw, gb = torch.ops.aten.native_batch_norm_backward(
-            gy, x, weight, None, None, mean, invstd, True, ctx.eps, [need_x, need_w and weight is not None,
-                                                                   need_b and bias is not None])
-        return (gx if need_x else None, gw if need_w else None, gb if need_b else None, None, None, None, None)
+        if not gy.is_contiguous():                        # PyTorch's for another layout of the gradient
+            gx, gw, gb = torch.ops.aten.native_batch_norm_backward(
+                gy, x, weight, None, None, mean, invstd, True, ctx.eps, [need_x, need_w and weight is not None,
+                                                                       need_b and bias is not None])
+            return (gx if need_x else None, gw if need_w else None, gb if need_b else None, None, None, None, None)
+        B, C, H, W = x.shape
+        gx = torch.empty_like(x) if need_x else None
+        gw = x.new_empty(C) if need_w and weight is not None else None
+        gb = x.new_empty(C) if need_b and bias is not None else None
+
+        def ptr(t: Tensor | None):
+            return None if t is None else t.data_ptr()
+        rc = native.library().omnidl_bn_train_backward(
+            x.data_ptr(), gy.data_ptr(), B, C, H * W, ptr(weight), mean.data_ptr(), invstd.data_ptr(), ptr(gx),
+            ptr(gw), ptr(gb), max(1, torch.get_num_threads()))
+        if rc:
+            raise RuntimeError(f"omnidl batch norm: the native backward returned {rc} for a map of shape {tuple(x.shape)}")
+        return gx, gw, gb, None, None, None, None

@@ -199,6 +199,8 @@ def _load(path: Path) -> ctypes.CDLL:
     d = ctypes.c_double
     lib.omnidl_bn_train.argtypes = [p, n, n, n, p, p, d, d, p, p, p, p, p, i]
     lib.omnidl_bn_train.restype = i
+    lib.omnidl_bn_train_backward.argtypes = [p, p, n, n, n, p, p, p, p, p, p, i]
+    lib.omnidl_bn_train_backward.restype = i
     f = ctypes.c_float
     lib.omnidl_sphere_read.argtypes = [p, n, i, i, i, p, p, p, n, p, i]
     lib.omnidl_sphere_read.restype = i

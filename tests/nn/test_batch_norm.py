@@ -27,14 +27,20 @@ def _pair(C: int, **kw) -> tuple[nn.BatchNorm2d, nn.BatchNorm2d]:
 
 
 def _native_calls(monkeypatch) -> list:
+    """The native forwards' (B, C, hw) from now on; each native backward appends ("backward", B, C, hw)."""
     calls: list = []
     lib = native.library()
-    real = lib.omnidl_bn_train
+    real, real_backward = lib.omnidl_bn_train, lib.omnidl_bn_train_backward
 
     def counted(*args):
         calls.append(args[1:4])
         return real(*args)
+
+    def counted_backward(*args):
+        calls.append(("backward", *args[2:5]))
+        return real_backward(*args)
     monkeypatch.setattr(lib, "omnidl_bn_train", counted)
+    monkeypatch.setattr(lib, "omnidl_bn_train_backward", counted_backward)
     return calls
 
 
@@ -51,19 +57,23 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("name,shape,kw", CASES, ids=[c[0] for c in CASES])
+@pytest.mark.parametrize("name,shape,kw", CASES + [("a channels-last gradient: PyTorch's backward", (2, 8, 5, 6),
+                                                     {"layout": torch.channels_last})], ids=[c[0] for c in CASES] + ["cl"])
 def test_training_forward_and_backward_match_pytorch(name, shape, kw, monkeypatch):
     calls = _native_calls(monkeypatch)
+    layout = kw.pop("layout", torch.contiguous_format)
     ref, new = _pair(shape[1], **kw)
     g = torch.Generator().manual_seed(1)
     x = (torch.randn(shape, generator=g) * 3 + 1).requires_grad_()
     x2 = x.detach().clone().requires_grad_()
-    gy = torch.randn(shape, generator=g)
+    gy = torch.randn(shape, generator=g).contiguous(memory_format=layout)
     for _ in range(2):                                   # the running statistics' update twice
         y1, y2 = ref(x), new(x2)
         y1.backward(gy)
         y2.backward(gy)
-    assert len(calls) == 2 and type(new) is batch_norm.BatchNorm2d
+    backwards = 0 if layout is torch.channels_last else 2
+    assert len(calls) == 2 + backwards and type(new) is batch_norm.BatchNorm2d
+    assert sum(c[0] == "backward" for c in calls) == backwards
     torch.testing.assert_close(y2, y1, rtol=0, atol=1e-5)
     assert y2.is_contiguous()
     torch.testing.assert_close(x2.grad, x.grad, rtol=1e-5, atol=1e-5)
