@@ -75,8 +75,8 @@ def convert(module: nn.Module) -> nn.Module:
 
 class _TrainingBatchNorm(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x: Tensor, weight: Tensor | None, bias: Tensor | None, running_mean: Tensor | None,  # type: ignore[override]
-                running_var: Tensor | None, eps: float, factor: float) -> Tensor:
+    def forward(ctx, x: Tensor, weight: Tensor | None, bias: Tensor | None,  # type: ignore[override]
+                running_mean: Tensor | None, running_var: Tensor | None, eps: float, factor: float) -> Tensor:
         B, C, H, W = x.shape
         y = torch.empty_like(x, memory_format=torch.contiguous_format)
         mean, invstd = x.new_empty(2, C).unbind()
@@ -122,5 +122,6 @@ class _TrainingBatchNorm(torch.autograd.Function):
             x.data_ptr(), gy.data_ptr(), B, C, H * W, ptr(weight), mean.data_ptr(), invstd.data_ptr(), ptr(gx),
             ptr(gw), ptr(gb), max(1, torch.get_num_threads()))
         if rc:
-            raise RuntimeError(f"omnidl batch norm: the native backward returned {rc} for a map of shape {tuple(x.shape)}")
+            raise RuntimeError(f"omnidl batch norm: the native backward returned {rc} for a map of shape "
+                               f"{tuple(x.shape)}")
         return gx, gw, gb, None, None, None, None

@@ -57,10 +57,13 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("name,shape,kw", CASES + [("a channels-last gradient: PyTorch's backward", (2, 8, 5, 6),
-                                                     {"layout": torch.channels_last})], ids=[c[0] for c in CASES] + ["cl"])
+GRADIENT_LAYOUT = [("a channels-last gradient: PyTorch's backward", (2, 8, 5, 6), {"layout": torch.channels_last})]
+
+
+@pytest.mark.parametrize("name,shape,kw", CASES + GRADIENT_LAYOUT, ids=[c[0] for c in CASES + GRADIENT_LAYOUT])
 def test_training_forward_and_backward_match_pytorch(name, shape, kw, monkeypatch):
     calls = _native_calls(monkeypatch)
+    kw = dict(kw)
     layout = kw.pop("layout", torch.contiguous_format)
     ref, new = _pair(shape[1], **kw)
     g = torch.Generator().manual_seed(1)

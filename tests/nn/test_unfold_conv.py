@@ -281,6 +281,8 @@ PRODUCTS = [
     ("forward of 1024 channels on 4x8: one panel, used in place", 1024, 1152, 32, False, False, False, True, True),
     ("input gradient: a weight's transpose", 1152, 96, 32, True, False, False, False, True),
     ("input gradient: 3 blocks of copied rows, 3 chunks of k, ragged", 421, 600, 45, True, False, False, False, True),
+    ("input gradient on one panel, read in place: 3 blocks, 3 chunks of k, ragged", 421, 600, 29, True, False, False,
+     False, True),
     ("a's transpose against many panels (panels outer)", 200, 300, 2000, True, False, False, False, True),
     ("a's transpose into rows of a wider matrix, bias", 50, 70, 40, True, False, True, True, True),
     ("weight gradient: columns transposed, packed", 96, 32, 1152, False, True, False, False, True),

@@ -120,7 +120,8 @@ int omnidl_bn_train_backward(const float *x, const float *gy, int64_t B, int64_t
         if (gw) gw[c] = (float)(sgd * is);
         if (!gx) continue;
         /* gx = k (gy - sg / n) - k' (x - mean) with k = w invstd, k' = w invstd^3 sgd / n */
-        const float k = (float)(wc * is), shift = (float)(sg / (double)n), k2 = (float)(wc * is * is * is * sgd / (double)n);
+        const float k = (float)(wc * is), shift = (float)(sg / (double)n);
+        const float k2 = (float)(wc * is * is * is * sgd / (double)n);
         for (int64_t i = 0; i < B; ++i) {
             const float *xp = x + (i * C + c) * hw, *gp = gy + (i * C + c) * hw;
             float *op = gx + (i * C + c) * hw;

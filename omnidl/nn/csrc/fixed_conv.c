@@ -251,16 +251,19 @@ static void gemm_packed(int m, int n, int k, const float *a, int64_t rs, int64_t
  * per k-step). Read where it lies, each MR-row sliver would take a short piece of every weight row: a stride the
  * hardware prefetchers do not follow, and the rows of a weight whose length is a multiple of 1024 floats all fall
  * in one L1 set (1024 -> 1024 channels, 3x3: W^T g took 16-17 ms against 5 ms for the forward W x on one host).
- * So each block of A_BLOCK slivers x KC_BLOCK k-values is first copied into `ap` (A_BLOCK * MR * KC_BLOCK floats:
- * sliver by sliver, MR values per k-step, contiguous) and run from there in gemm_packed's order.
+ * So a runs in blocks of A_BLOCK slivers x KC_BLOCK k-values, in gemm_packed's order, and while a block runs, the
+ * next block's weight rows are fetched into L2, one cache line per k-step of its tiles (ahead_t; ROWS_AHEAD 0 turns
+ * it off). Against more than one panel of b (n > NR), each block is first copied into `ap` (A_BLOCK * MR *
+ * KC_BLOCK floats: sliver by sliver, MR values per k-step, contiguous) and run from there; against one panel each
+ * value of a is used once, and is read where it lies, from L2.
  * The copy takes COPY_GROUP weight rows at a time, sliver by sliver, so that each sliver's destination is written
  * in whole cache lines (row by row, the A_BLOCK destinations of one row lie 12 KB apart, in one L1 set, and their
- * partly written lines were evicted and read back), the rows PACK_AHEAD ahead prefetched. While a block runs, the
- * next block's weight rows are fetched into L2, one cache line per k-step of its tiles (ahead_t; ROWS_AHEAD 0 turns
- * it off). W^T g from memory on 2 threads of a Zen 4 guest, 1024 -> 1024 channels 3x3 on 4x8: 4.0 ms against 4.1
- * with the grouped copy alone and 4.6-4.7 before both; 512 -> 512 on 4x8 0.96 against 1.09 and 1.20; on 8x16 (128
- * columns) 3.1 against 3.2 and 3.35. (-D overrides: A/B builds of the benchmarks; A_BLOCK 0 reads a where it
- * lies.) */
+ * partly written lines were evicted and read back), the rows PACK_AHEAD ahead prefetched. W^T g from memory on 2
+ * threads of a Zen 4 guest (A/B of builds in one process), 1024 -> 1024 channels 3x3 on 4x8 (32 columns: one
+ * panel): 3.3-3.4 ms read in place from L2, against 3.8-4.1 copied with the next block fetched, 4.1 with the grouped
+ * copy alone and 4.6-4.7 before all three; 512 -> 512 on 4x8 0.84 against 0.96-1.0, 1.09 and 1.20; on 8x16 (128
+ * columns, copied) 3.1 against 3.2 and 3.35. (-D overrides: A/B builds of the benchmarks; A_BLOCK 0 reads a where
+ * it lies without blocks or fetches.) */
 #ifndef PACK_AHEAD
 #define PACK_AHEAD 8
 #endif
@@ -298,15 +301,20 @@ static void gemm_packed_rows(int m, int n, int k, const float *a, int64_t cs, co
         const int rows = m - i0 < A_BLOCK * MR ? m - i0 : A_BLOCK * MR;
         for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
             const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
-            copy_rows_block(rows, kb, a + i0 + (int64_t)p0 * cs, cs, ap);
+            const float *block = a + i0 + (int64_t)p0 * cs;
+            if (n > NR) copy_rows_block(rows, kb, block, cs, ap);
             /* the next block: the next chunk of k, or the first of the next rows */
             const int q0 = p0 + KC_BLOCK < k ? p0 + KC_BLOCK : 0, n0 = q0 ? i0 : i0 + A_BLOCK * MR;
             const int nrows = n0 >= m ? 0 : m - n0 < A_BLOCK * MR ? m - n0 : A_BLOCK * MR;
             const int nkb = k - q0 < KC_BLOCK ? k - q0 : KC_BLOCK;
             const ahead_t next = {a + n0 + (int64_t)q0 * cs, cs, (nrows + 15) / 16 + 1,
                                   ROWS_AHEAD && nrows ? nkb * ((nrows + 15) / 16 + 1) : 0};
-            gemm_chunk(rows, n, kb, ap, (int64_t)kb * MR, 1, MR, bp + (int64_t)p0 * NR, (int64_t)k * NR,
-                       c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL, &next);
+            if (n > NR)
+                gemm_chunk(rows, n, kb, ap, (int64_t)kb * MR, 1, MR, bp + (int64_t)p0 * NR, (int64_t)k * NR,
+                           c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL, &next);
+            else                                      /* one panel: each value of a is used once, where it lies */
+                gemm_chunk(rows, n, kb, block, MR, 1, cs, bp + (int64_t)p0 * NR, (int64_t)k * NR,
+                           c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL, &next);
         }
     }
 }
@@ -334,10 +342,11 @@ static int rows_alias(int64_t rs, int64_t cs) {
  * row into `ap` (A_BLOCK * MR * COPY_LDA floats) at the padded stride COPY_LDA and run from there, while the next
  * block's rows are fetched into L2, one cache line per k-step of its tiles (ahead_t; 1024 x 9216 by 9216 x 32 from
  * memory on 2 threads of a Zen 4 guest: 3.8-3.9 ms against 4.1-4.2 with the lines fetched all at once before the
- * tiles, 4.9 without; 3.1 ms on rows 16 floats apart, read in place). A block is one sliver where the chunk of b stays in
- * L2 (gemm_chunk's rows-outer order: the copy then sits in L1; 1024 x 9216 by 9216 x 128 on 2 threads, 8 % slower
- * than the same product on rows 16 floats apart, against 11 % with blocks of 16 slivers), else A_BLOCK slivers
- * (each runs past every panel held in L1). */
+ * tiles, 4.9 without; 3.1 ms on rows 16 floats apart, read in place; these rows read in place with the same fetches
+ * were level, 3.4-3.7 ms). A block is one sliver where the chunk of b stays in L2 (gemm_chunk's rows-outer order:
+ * the copy then sits in L1; 1024 x 9216 by 9216 x 128 on 2 threads, 8 % slower than the same product on rows 16
+ * floats apart, against 11 % with blocks of 16 slivers), else A_BLOCK slivers (each runs past every panel held in
+ * L1). */
 static void gemm_packed_copied(int m, int n, int k, const float *a, int64_t rs, const float *bp, float *c, int64_t ldc,
                                int accumulate, const float *bias, float *ap) {
     const int panels = (n + NR - 1) / NR;
@@ -918,8 +927,9 @@ int omnidl_gemm(int m, int n, int k, const float *a, int64_t ars, int64_t acs, c
     const int mode = accumulate ? 1 : k <= KC_BLOCK && (int64_t)m * n * (int64_t)sizeof(float) >= STREAMING ? 2 : 0;
     const int64_t a_floats = (int64_t)A_BLOCK * MR * COPY_LDA;
     const int side_by_side = A_BLOCK > 0 && ars == 1 && acs > 1, aliased = rows_alias(ars, acs);
-    float *ap = side_by_side || aliased ? (float *)malloc(sizeof(float) * (size_t)(a_floats * nthreads)) : NULL;
-    if ((side_by_side || aliased) && !ap) {
+    const int copied = (side_by_side && n > NR) || aliased;
+    float *ap = copied ? (float *)malloc(sizeof(float) * (size_t)(a_floats * nthreads)) : NULL;
+    if (copied && !ap) {
         free(bp);
         return 1;
     }
@@ -936,7 +946,8 @@ int omnidl_gemm(int m, int n, int k, const float *a, int64_t ars, int64_t acs, c
         team(&t, &nt);
         const int i0 = MR * (int)span_edge(slivers, t, nt), i1 = (int)min64(m, MR * span_edge(slivers, t + 1, nt));
         if (i1 > i0 && side_by_side)
-            gemm_packed_rows(i1 - i0, n, k, a + i0, acs, direct ? b : bp, c + i0 * ldc, ldc, mode, ap + t * a_floats);
+            gemm_packed_rows(i1 - i0, n, k, a + i0, acs, direct ? b : bp, c + i0 * ldc, ldc, mode,
+                             ap ? ap + t * a_floats : NULL);
         else if (i1 > i0 && aliased)
             gemm_packed_copied(i1 - i0, n, k, a + i0 * ars, ars, direct ? b : bp, c + i0 * ldc, ldc, mode, NULL,
                                ap + t * a_floats);
