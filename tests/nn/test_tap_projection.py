@@ -107,3 +107,68 @@ def test_bad_inputs_name_what_was_expected():
         tp.shift_sum(nn.Conv2d(4, 1, 3, stride=2, padding=1), torch.zeros(1, 9, 4, 4))
     with pytest.raises(ValueError, match="expected 1 x 9 projected channels, got 8"):
         tp.shift_sum(nn.Conv2d(4, 1, 3, padding=1), torch.zeros(1, 8, 4, 4))
+
+
+# (name, P rows, map shape (B, C, h, w), channels-last map, dtype, the native products run): project()'s products
+# on omnidl's kernels (the few-column kernel's two forms, the register kernel) or PyTorch's, against float64
+NATIVE_CASES = [
+    ("depth head: 9 taps, 128 channels", 9, (1, 128, 16, 32), False, torch.float32, True),
+    ("batch 2 (the weight gradient accumulated), ragged", 9, (2, 40, 7, 13), False, torch.float32, True),
+    ("11 taps, channels fewer than a vector", 11, (1, 5, 3, 37), False, torch.float32, True),
+    ("one tap", 1, (2, 33, 4, 5), False, torch.float32, True),
+    ("12 taps: bmm", 12, (1, 16, 4, 5), False, torch.float32, False),
+    ("channels-last map: matmul", 9, (1, 16, 4, 5), True, torch.float32, False),
+    ("float64: bmm", 9, (1, 16, 4, 5), False, torch.float64, False),
+]
+
+
+@pytest.mark.parametrize("name,rows,shape,cl,dtype,native_run", NATIVE_CASES, ids=[c[0] for c in NATIVE_CASES])
+def test_projection_products(name, rows, shape, cl, dtype, native_run, monkeypatch):
+    from omnidl.nn import native
+    lib = native.library()
+    if lib is None:
+        pytest.skip("native library not built")
+    calls = []
+    for fn in ("omnidl_gemm_narrow", "omnidl_gemm"):
+        real = getattr(lib, fn)
+        monkeypatch.setattr(lib, fn, lambda *a, real=real, fn=fn: calls.append(fn) or real(*a))
+    g = torch.Generator().manual_seed(rows + shape[1])
+    P = torch.randn(rows, shape[1], dtype=dtype, generator=g, requires_grad=True)
+    m = torch.randn(shape, dtype=dtype, generator=g)
+    if cl:
+        m = m.contiguous(memory_format=CL)
+    m.requires_grad_()
+    conv = nn.Conv2d(shape[1], rows, 1, bias=False).to(dtype)
+    monkeypatch.setattr(tp, "projection_matrix", lambda weight: P)
+    z = tp.project(conv, m)
+    gz = torch.randn(z.shape, dtype=dtype, generator=g)
+    gp, gm = torch.autograd.grad(z, (P, m), gz)
+    B, C, h, w = shape
+    pd, md, gzd = P.detach().double(), m.detach().double().reshape(B, C, h * w), gz.double().reshape(B, rows, h * w)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    scale = lambda t: tol * max(1.0, float(t.abs().max()))
+    want = (pd @ md).reshape(z.shape)
+    torch.testing.assert_close(z.double(), want, rtol=0, atol=scale(want))
+    want_p, want_m = (gzd @ md.transpose(1, 2)).sum(0), (pd.t() @ gzd).reshape(shape)
+    torch.testing.assert_close(gp.double(), want_p, rtol=0, atol=scale(want_p))
+    torch.testing.assert_close(gm.double(), want_m, rtol=0, atol=scale(want_m))
+    assert z.shape == (B, rows, h, w) and z.is_contiguous() != cl
+    expected = ["omnidl_gemm_narrow"] * B + ["omnidl_gemm_narrow"] * B + ["omnidl_gemm"] * B if native_run else []
+    assert calls == expected
+
+
+def test_projection_second_derivatives_under_create_graph(monkeypatch):
+    torch.manual_seed(3)
+    P = torch.randn(9, 6, requires_grad=True)
+    m = torch.randn(2, 6, 3, 4, requires_grad=True)
+    conv = nn.Conv2d(6, 9, 1, bias=False)
+    monkeypatch.setattr(tp, "projection_matrix", lambda weight: P)
+    out = []
+    for switch in (True, False):          # native products, then bmm
+        monkeypatch.setattr(tp, "NATIVE_PRODUCTS", switch)
+        z = tp.project(conv, m)
+        (gm,) = torch.autograd.grad((z ** 2).sum(), m, create_graph=True)
+        (ggp,) = torch.autograd.grad(gm.sum(), P)
+        out.append((gm.detach(), ggp))
+    torch.testing.assert_close(out[0][0], out[1][0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(out[0][1], out[1][1], rtol=1e-5, atol=1e-4)
