@@ -4,8 +4,8 @@ up-sampling (``csrc/upsample.c``), the thin 1x1 expansion with batch norm (``csr
 wrap into channels-last memory and back (``csrc/wrap_layout.c``), the photometric gyroscopes' reads of a
 panorama at directions with their Gauss-Newton sums (``csrc/sphere_terms.c``) and the synthetic renderer's box slab
 tests, per-pixel surface and shading pass and layout maps (``csrc/box_slabs.c``, ``csrc/surface_shade.c``,
-``csrc/layout_maps.c``), a weight's products on few columns (``csrc/narrow_gemm.c``) and batch norm's training
-forward (``csrc/batch_norm.c``), one shared library.
+``csrc/layout_maps.c``), a weight's products on few columns (``csrc/narrow_gemm.c``), batch norm in training
+(``csrc/batch_norm.c``) and im2col / col2im (``csrc/unfold.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -47,7 +47,8 @@ SOURCE = Path(__file__).with_name("csrc") / "fixed_conv.c"
 SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "prelu.c", "upsample.c",
                                                                  "expansion.c", "wrap_layout.c", "sphere_terms.c",
                                                                  "surface_shade.c", "box_slabs.c",
-                                                                 "layout_maps.c", "narrow_gemm.c", "batch_norm.c"))
+                                                                 "layout_maps.c", "narrow_gemm.c", "batch_norm.c",
+                                                                 "unfold.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -201,6 +202,9 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_bn_train.restype = i
     lib.omnidl_bn_train_backward.argtypes = [p, p, n, n, n, p, p, p, p, p, p, i]
     lib.omnidl_bn_train_backward.restype = i
+    for name in ("omnidl_im2col", "omnidl_col2im"):
+        getattr(lib, name).argtypes = [p, *[n] * 14, p, i]
+        getattr(lib, name).restype = i
     f = ctypes.c_float
     lib.omnidl_sphere_read.argtypes = [p, n, i, i, i, p, p, p, n, p, i]
     lib.omnidl_sphere_read.restype = i

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import native, thin_layout, winograd_train
+from . import im2col, native, thin_layout, winograd_train
 from .capture import capturing
 from .offsets import _pair, output_size
 from .sampling import _is_channels_last, weight_channels_last
@@ -137,7 +137,7 @@ def unfold_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None = None, stride:
         # a 1x1 convolution's columns are its (strided) pixels: a view for stride 1 and a contiguous x
         cols = (x if stride == (1, 1) else x[:, :, ::stride[0], ::stride[1]]).reshape(B, C, ho * wo)
     else:
-        cols = F.unfold(x, (kh, kw), dilation=dilation, padding=padding, stride=stride)    # (B, C*kh*kw, L)
+        cols = im2col.unfold(x, (kh, kw), dilation, padding, stride)                        # (B, C*kh*kw, L)
     if weight_channels_last(weight):
         # a channels-last weight is (Cout, kh, kw, C) in memory: a view of it as rows, the columns re-ordered to
         # match (a copy of the small operand, not of the weight)
