@@ -25,12 +25,9 @@ static void valid_range(int64_t Wo, int64_t W, int64_t sw, int64_t off, int64_t 
  * contiguous copy (where the source lies inside the plane), then zeros on the rows outside and on the dx columns
  * at the edges, whose copied values came from the neighbouring row. Small maps (4x8) have rows of a few values,
  * where copying each alone cost more than the copy. */
-static void shifted_row(const float *xp, int64_t H, int64_t W, int64_t Ho, int64_t dy, int64_t dx, float *row) {
-    const int64_t L = Ho * W, shift = dy * W + dx;
-    int64_t t0 = -shift > 0 ? -shift : 0, t1 = H * W - shift < L ? H * W - shift : L;
-    for (int64_t t = 0; t < (t0 < L ? t0 : L); ++t) row[t] = 0.0f;
-    for (int64_t t = t0; t < t1; ++t) row[t] = xp[t + shift];
-    for (int64_t t = t1 > t0 ? t1 : t0; t < L; ++t) row[t] = 0.0f;
+/* zeros on the values of a shifted row (Ho rows of W) read from outside the (H, W) plane: whole rows above or
+ * below it, the dx columns at its left (dx < 0) or right (dx > 0) edge */
+static void zero_outside(float *row, int64_t H, int64_t W, int64_t Ho, int64_t dy, int64_t dx) {
     for (int64_t oy = 0; oy < Ho; ++oy) {
         float *r = row + oy * W;
         if (oy + dy < 0 || oy + dy >= H) {
@@ -40,6 +37,15 @@ static void shifted_row(const float *xp, int64_t H, int64_t W, int64_t Ho, int64
         for (int64_t ox = 0; ox < -dx && ox < W; ++ox) r[ox] = 0.0f;
         for (int64_t ox = W - dx > 0 ? W - dx : 0; ox < W; ++ox) r[ox] = 0.0f;
     }
+}
+
+static void shifted_row(const float *xp, int64_t H, int64_t W, int64_t Ho, int64_t dy, int64_t dx, float *row) {
+    const int64_t L = Ho * W, shift = dy * W + dx;
+    int64_t t0 = -shift > 0 ? -shift : 0, t1 = H * W - shift < L ? H * W - shift : L;
+    for (int64_t t = 0; t < (t0 < L ? t0 : L); ++t) row[t] = 0.0f;
+    for (int64_t t = t0; t < t1; ++t) row[t] = xp[t + shift];
+    for (int64_t t = t1 > t0 ? t1 : t0; t < L; ++t) row[t] = 0.0f;
+    zero_outside(row, H, W, Ho, dy, dx);
 }
 
 int omnidl_im2col(const float *x, int64_t B, int64_t C, int64_t H, int64_t W, int64_t kh, int64_t kw, int64_t sh,
@@ -87,15 +93,7 @@ static void shifted_row_add(const float *row, int64_t H, int64_t W, int64_t Ho, 
                             float *xp) {
     const int64_t L = Ho * W, shift = dy * W + dx;
     for (int64_t t = 0; t < L; ++t) tmp[t] = row[t];
-    for (int64_t oy = 0; oy < Ho; ++oy) {
-        float *r = tmp + oy * W;
-        if (oy + dy < 0 || oy + dy >= H) {
-            for (int64_t ox = 0; ox < W; ++ox) r[ox] = 0.0f;
-            continue;
-        }
-        for (int64_t ox = 0; ox < -dx && ox < W; ++ox) r[ox] = 0.0f;
-        for (int64_t ox = W - dx > 0 ? W - dx : 0; ox < W; ++ox) r[ox] = 0.0f;
-    }
+    zero_outside(tmp, H, W, Ho, dy, dx);
     const int64_t t0 = -shift > 0 ? -shift : 0, t1 = H * W - shift < L ? H * W - shift : L;
     for (int64_t t = t0; t < t1; ++t) xp[t + shift] += tmp[t];
 }
