@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnidl.nn.ffc import FourierBlock
-from omnidl.nn import batch_norm, tap_projection
+from omnidl.nn import batch_norm, tap_projection, upsample2x
 from omnidl.nn.capture import capturing
 from omnidl.nn import fusion
 from omnidl.nn.fusion import RowMap, UpsampleSum, blocked_conv, can_block, rows_per_block, upsample_sum
@@ -92,11 +92,14 @@ class DecoderBlock(nn.Module):
 
     def forward(self, x: Tensor, skip: Tensor | None = None) -> Tensor:
         y = self.conv(x)
+        if self.skip_weight is not None and skip is None:
+            raise ValueError("DecoderBlock built with a skip connection needs a skip tensor")
+        if self.upscale and upsample2x.applies(y, skip, self.skip_weight):
+            # up(y) + w * skip in one native pass each way (omnidl.nn.upsample2x)
+            return self.fourier(upsample2x.up2_add(y, skip, self.skip_weight), overwrite=True)
         if self.upscale:
             y = F.interpolate(y, scale_factor=2.0, mode="bilinear", align_corners=False)
         if self.skip_weight is not None:
-            if skip is None:
-                raise ValueError("DecoderBlock built with a skip connection needs a skip tensor")
             if torch.is_grad_enabled() or capturing():
                 y = y + self.skip_weight * skip
             else:       # y is this block's own new buffer: the weighted skip added in place, no two more full maps

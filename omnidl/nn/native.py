@@ -5,7 +5,8 @@ wrap into channels-last memory and back (``csrc/wrap_layout.c``), the photometri
 panorama at directions with their Gauss-Newton sums (``csrc/sphere_terms.c``) and the synthetic renderer's box slab
 tests, per-pixel surface and shading pass and layout maps (``csrc/box_slabs.c``, ``csrc/surface_shade.c``,
 ``csrc/layout_maps.c``), a weight's products on few columns (``csrc/narrow_gemm.c``), batch norm in training
-(``csrc/batch_norm.c``) and im2col / col2im (``csrc/unfold.c``), one shared library.
+(``csrc/batch_norm.c``), im2col / col2im (``csrc/unfold.c``) and the decoders' up-sampling by 2 with a skip map
+(``csrc/upsample2x.c``), one shared library.
 
 The kernels are plain C (no torch headers, so it compiles in about a second) and is loaded with :mod:`ctypes`.
 Each call runs on OpenMP threads: built with ``-fopenmp``, the library resolves ``libgomp.so.1`` to the copy
@@ -48,7 +49,7 @@ SOURCES = tuple(SOURCE.with_name(name) for name in ("fixed_conv.c", "lstm.c", "p
                                                                  "expansion.c", "wrap_layout.c", "sphere_terms.c",
                                                                  "surface_shade.c", "box_slabs.c",
                                                                  "layout_maps.c", "narrow_gemm.c", "batch_norm.c",
-                                                                 "unfold.c"))
+                                                                 "unfold.c", "upsample2x.c"))
 #: tried first: the kernel's calls then run on PyTorch's own OpenMP thread team (same libgomp, loaded once)
 OPENMP = ["-fopenmp"]
 
@@ -197,15 +198,18 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_expand_sums.restype = i
     lib.omnidl_expand_input_grad.argtypes = [p, p, n, i, n, p, p, i, i, p, i, p, p, p, p, i]
     lib.omnidl_expand_input_grad.restype = i
-    d = ctypes.c_double
+    d, f = ctypes.c_double, ctypes.c_float
     lib.omnidl_bn_train.argtypes = [p, n, n, n, p, p, d, d, p, p, p, p, p, i]
     lib.omnidl_bn_train.restype = i
     lib.omnidl_bn_train_backward.argtypes = [p, p, n, n, n, p, p, p, p, p, p, i]
     lib.omnidl_bn_train_backward.restype = i
+    lib.omnidl_up2_forward.argtypes = [p, n, n, n, p, f, p, i]
+    lib.omnidl_up2_forward.restype = i
+    lib.omnidl_up2_backward.argtypes = [p, n, n, n, p, f, p, p, p, i]
+    lib.omnidl_up2_backward.restype = i
     for name in ("omnidl_im2col", "omnidl_col2im"):
         getattr(lib, name).argtypes = [p, *[n] * 14, p, i]
         getattr(lib, name).restype = i
-    f = ctypes.c_float
     lib.omnidl_sphere_read.argtypes = [p, n, i, i, i, p, p, p, n, p, i]
     lib.omnidl_sphere_read.restype = i
     lib.omnidl_pvg_terms.argtypes = [p, n, i, i, p, p, i, p, n, i, f, p, i]
