@@ -71,28 +71,35 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
         acc[i][0] = acc[i][1] = _mm512_setzero_ps();
         off[i] = i < mr ? i * rs : 0;
     }
-    for (int p = 0; p < k; ++p) {
-        const __m512 b0 = _mm512_loadu_ps(b + NR * p), b1 = _mm512_loadu_ps(b + NR * p + 16);
-        if (B_PREFETCH > 0 && prefetch) {   /* a hint: never faults past the panel's end */
-            _mm_prefetch((const char *)(b + NR * (p + B_PREFETCH)), _MM_HINT_T0);
-            _mm_prefetch((const char *)(b + NR * (p + B_PREFETCH) + 16), _MM_HINT_T0);
-        }
-        if (from < to) {    /* one line of the next block per k-step (ah is set where from < to) */
-            _mm_prefetch((const char *)(ah->base + row * ah->rs + col * 16), _MM_HINT_T1);
-            ++from;
-            if (++col == ah->cols) {
-                col = 0;
-                ++row;
-            }
-        }
-        const float *ap = a + p * cs;
-#pragma GCC unroll 12
-        for (int i = 0; i < MR; ++i) {
-            const __m512 t = _mm512_set1_ps(ap[off[i]]);
-            acc[i][0] = _mm512_fmadd_ps(t, b0, acc[i][0]);
-            acc[i][1] = _mm512_fmadd_ps(t, b1, acc[i][1]);
-        }
+    /* the k-steps, compiled twice: with the fetches of `ah` (one line per step while from < to) and without */
+#define TILE_STEPS(FETCH)                                                                                          \
+    for (int p = 0; p < k; ++p) {                                                                                  \
+        const __m512 b0 = _mm512_loadu_ps(b + NR * p), b1 = _mm512_loadu_ps(b + NR * p + 16);                      \
+        if (B_PREFETCH > 0 && prefetch) { /* a hint: never faults past the panel's end */                          \
+            _mm_prefetch((const char *)(b + NR * (p + B_PREFETCH)), _MM_HINT_T0);                                  \
+            _mm_prefetch((const char *)(b + NR * (p + B_PREFETCH) + 16), _MM_HINT_T0);                             \
+        }                                                                                                          \
+        if (FETCH && from < to) {                                                                                  \
+            _mm_prefetch((const char *)(ah->base + row * ah->rs + col * 16), _MM_HINT_T1);                         \
+            ++from;                                                                                                \
+            if (++col == ah->cols) {                                                                               \
+                col = 0;                                                                                           \
+                ++row;                                                                                             \
+            }                                                                                                      \
+        }                                                                                                          \
+        const float *ap = a + p * cs;                                                                              \
+        _Pragma("GCC unroll 12") for (int i = 0; i < MR; ++i) {                                                    \
+            const __m512 t = _mm512_set1_ps(ap[off[i]]);                                                           \
+            acc[i][0] = _mm512_fmadd_ps(t, b0, acc[i][0]);                                                         \
+            acc[i][1] = _mm512_fmadd_ps(t, b1, acc[i][1]);                                                         \
+        }                                                                                                          \
     }
+    if (ah && from < to) {
+        TILE_STEPS(1)
+    } else {
+        TILE_STEPS(0)
+    }
+#undef TILE_STEPS
     for (; from < to; ++from)
         _mm_prefetch((const char *)(ah->base + (from / ah->cols) * ah->rs + (from % ah->cols) * 16), _MM_HINT_T1);
     const __mmask16 m0 = nr >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << nr) - 1u);
