@@ -18,6 +18,17 @@ def close_to_scale(a: torch.Tensor, b: torch.Tensor, name: str, tol: float = TOL
     assert (a - b).abs().max() <= tol * max(1.0, float(b.detach().abs().max())), name
 
 
+def native_calls(monkeypatch, *names: str) -> list[str]:
+    """The names of the native library's functions ``names`` in the order they are called from now on (each still
+    runs)."""
+    calls: list[str] = []
+    lib = native.library()
+    for name in names:
+        real = getattr(lib, name)
+        monkeypatch.setattr(lib, name, lambda *a, real=real, name=name: calls.append(name) or real(*a))
+    return calls
+
+
 def _build_for(monkeypatch, tmp_path, march: str):
     """Build the native library with ``-march=<march>`` into a fresh cache (instead of ``-march=native``)."""
     if os.uname().machine != "x86_64":

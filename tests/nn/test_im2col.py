@@ -7,16 +7,9 @@ import torch.nn.functional as F
 
 from omnidl.nn import im2col, native
 
+from .conftest import native_calls
+
 pytestmark = pytest.mark.skipif(native.library() is None, reason="native library not built")
-
-
-def _calls(monkeypatch) -> list:
-    calls: list = []
-    lib = native.library()
-    for name in ("omnidl_im2col", "omnidl_col2im"):
-        real = getattr(lib, name)
-        monkeypatch.setattr(lib, name, lambda *a, real=real, name=name: calls.append(name) or real(*a))
-    return calls
 
 
 # (name, map shape (B, C, H, W), kernel, dilation, padding, stride): natively, equal to F.unfold and F.fold
@@ -38,7 +31,7 @@ CASES = [
 
 @pytest.mark.parametrize("name,shape,k,d,p,s", CASES, ids=[c[0] for c in CASES])
 def test_unfold_and_gradient_equal_pytorchs(name, shape, k, d, p, s, monkeypatch):
-    calls = _calls(monkeypatch)
+    calls = native_calls(monkeypatch, "omnidl_im2col", "omnidl_col2im")
     g = torch.Generator().manual_seed(shape[1])
     x = torch.randn(shape, generator=g, requires_grad=True)
     cols = im2col.unfold(x, k, d, p, s)
@@ -75,7 +68,7 @@ FALLBACKS = [
 
 @pytest.mark.parametrize("name,make", FALLBACKS, ids=[c[0] for c in FALLBACKS])
 def test_other_inputs_take_f_unfold(name, make, monkeypatch):
-    calls = _calls(monkeypatch)
+    calls = native_calls(monkeypatch, "omnidl_im2col", "omnidl_col2im")
     if name == "switched off":
         monkeypatch.setattr(im2col, "ENABLED", False)
     x = make(torch.randn(1, 4, 6, 7))

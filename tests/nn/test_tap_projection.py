@@ -10,6 +10,8 @@ from omnidl.cameras import Equirectangular
 from omnidl.nn import CircularConv2d, ProjectedConv2d
 from omnidl.nn import tap_projection as tp
 
+from .conftest import native_calls
+
 CL = torch.channels_last
 
 # (name, make conv, input shape, channels-last input)
@@ -128,10 +130,7 @@ def test_projection_products(name, rows, shape, cl, dtype, native_run, monkeypat
     lib = native.library()
     if lib is None:
         pytest.skip("native library not built")
-    calls = []
-    for fn in ("omnidl_gemm_narrow", "omnidl_gemm"):
-        real = getattr(lib, fn)
-        monkeypatch.setattr(lib, fn, lambda *a, real=real, fn=fn: calls.append(fn) or real(*a))
+    calls = native_calls(monkeypatch, "omnidl_gemm_narrow", "omnidl_gemm")
     g = torch.Generator().manual_seed(rows + shape[1])
     P = torch.randn(rows, shape[1], dtype=dtype, generator=g, requires_grad=True)
     m = torch.randn(shape, dtype=dtype, generator=g)

@@ -8,16 +8,9 @@ import torch
 
 from omnidl.nn import native, upsample2x
 
+from .conftest import native_calls
+
 pytestmark = pytest.mark.skipif(native.library() is None, reason="native library not built")
-
-
-def _calls(monkeypatch) -> list:
-    calls: list = []
-    lib = native.library()
-    for name in ("omnidl_up2_forward", "omnidl_up2_backward"):
-        real = getattr(lib, name)
-        monkeypatch.setattr(lib, name, lambda *a, real=real, name=name: calls.append(name) or real(*a))
-    return calls
 
 
 # (name, y shape (B, C, h, w), with a skip map): natively, equal to F.interpolate (+ w * skip) with gradients
@@ -32,7 +25,7 @@ CASES = [
 
 @pytest.mark.parametrize("name,shape,with_skip", CASES, ids=[c[0] for c in CASES])
 def test_up2_add_equals_pytorch(name, shape, with_skip, monkeypatch):
-    calls = _calls(monkeypatch)
+    calls = native_calls(monkeypatch, "omnidl_up2_forward", "omnidl_up2_backward")
     g = torch.Generator().manual_seed(shape[1] + shape[3])
     B, C, h, w = shape
     y = torch.randn(shape, generator=g, requires_grad=True)
@@ -50,7 +43,7 @@ def test_up2_add_equals_pytorch(name, shape, with_skip, monkeypatch):
 
 
 def test_without_autograd_one_forward_pass(monkeypatch):
-    calls = _calls(monkeypatch)
+    calls = native_calls(monkeypatch, "omnidl_up2_forward", "omnidl_up2_backward")
     y, skip, weight = torch.randn(1, 2, 3, 4), torch.randn(1, 2, 6, 8), torch.tensor([1.5])
     with torch.no_grad():
         out = upsample2x.up2_add(y, skip, weight)
@@ -84,7 +77,7 @@ FALLBACKS = [
 
 @pytest.mark.parametrize("name,make", FALLBACKS, ids=[c[0] for c in FALLBACKS])
 def test_other_inputs_take_pytorchs_ops(name, make, monkeypatch):
-    calls = _calls(monkeypatch)
+    calls = native_calls(monkeypatch, "omnidl_up2_forward", "omnidl_up2_backward")
     if name == "switched off":
         monkeypatch.setattr(upsample2x, "ENABLED", False)
     y, skip, weight = make(torch.randn(1, 2, 3, 4), torch.randn(1, 2, 6, 8), torch.tensor([0.5]))
