@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from . import native, thin_layout
+from .native import ptr as _ptr
 from .sampling import (SamplingPlan, _FixedOffsetConv, _is_channels_last, _rows, finish_backward, new_accumulators,
                        save_columns_context, weight_channels_last, weight_matrix)
 
@@ -105,10 +106,6 @@ def _packed(lib, weight: Tensor, transpose: bool, keep: bool | None = None) -> T
         _PACKED[key] = (weakref.ref(weight, lambda _, k=key: _PACKED.pop(k, None)), weight._version,
                         weight.data_ptr(), wp)
     return wp
-
-
-def _ptr(t: Tensor | None) -> int | None:
-    return None if t is None else t.data_ptr()
 
 
 def _call(rc: int, what: str) -> None:

@@ -236,6 +236,11 @@ def _load(path: Path) -> ctypes.CDLL:
     return lib
 
 
+def ptr(t: torch.Tensor | None) -> int | None:
+    """``t``'s data pointer for a kernel's optional argument, ``None`` (a NULL pointer) for no tensor."""
+    return None if t is None else t.data_ptr()
+
+
 def library() -> ctypes.CDLL | None:
     """The loaded kernel, built on first call; ``None`` (with one warning per process, unless disabled by
     ``OMNIDL_NATIVE=0``) where it cannot be built."""

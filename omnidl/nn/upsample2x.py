@@ -56,7 +56,7 @@ def up2_add(y: Tensor, skip: Tensor | None = None, weight: Tensor | None = None)
 def _forward(y: Tensor, skip: Tensor | None, weight: Tensor | None) -> Tensor:
     B, C, h, w = y.shape
     out = y.new_empty(B, C, 2 * h, 2 * w)
-    rc = native.library().omnidl_up2_forward(y.data_ptr(), B * C, h, w, None if skip is None else skip.data_ptr(),
+    rc = native.library().omnidl_up2_forward(y.data_ptr(), B * C, h, w, native.ptr(skip),
                                               0.0 if weight is None else float(weight), out.data_ptr(),
                                               max(1, torch.get_num_threads()))
     if rc:
@@ -85,9 +85,9 @@ class _Up2Add(torch.autograd.Function):
         gskip = torch.empty_like(g) if need_skip else None
         dots = torch.empty(B * C, dtype=torch.float64) if need_w else None
         rc = native.library().omnidl_up2_backward(
-            g.data_ptr(), B * C, h, w, None if skip is None else skip.data_ptr(),
-            0.0 if weight is None else float(weight), None if gy is None else gy.data_ptr(),
-            None if gskip is None else gskip.data_ptr(), None if dots is None else dots.data_ptr(),
+            g.data_ptr(), B * C, h, w, native.ptr(skip),
+            0.0 if weight is None else float(weight), native.ptr(gy),
+            native.ptr(gskip), native.ptr(dots),
             max(1, torch.get_num_threads()))
         if rc:
             raise MemoryError(f"omnidl up-sampling by 2: could not allocate a scratch row of {w} values")

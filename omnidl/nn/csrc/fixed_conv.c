@@ -38,6 +38,18 @@ typedef struct {
     int cols, lines;
 } ahead_t;
 
+/* the lines of `rows` runs of `width` floats, rs floats apart from base (one line more per run than width / 16:
+ * a run need not start on a line) */
+static inline ahead_t ahead_rows(const float *base, int64_t rs, int rows, int width) {
+    const int cols = (width + 15) / 16 + 1;
+    return (ahead_t){base, rs, cols, rows > 0 && width > 0 ? rows * cols : 0};
+}
+
+/* line l of ah */
+static inline const char *ahead_line(const ahead_t *ah, int l) {
+    return (const char *)(ah->base + (int64_t)(l / ah->cols) * ah->rs + (l % ah->cols) * 16);
+}
+
 #if defined(__AVX512F__)
 #include <immintrin.h>
 #define MR 12
@@ -100,8 +112,7 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
         TILE_STEPS(0)
     }
 #undef TILE_STEPS
-    for (; from < to; ++from)
-        _mm_prefetch((const char *)(ah->base + (from / ah->cols) * ah->rs + (from % ah->cols) * 16), _MM_HINT_T1);
+    for (; from < to; ++from) _mm_prefetch(ahead_line(ah, from), _MM_HINT_T1);
     const __mmask16 m0 = nr >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << nr) - 1u);
     const __mmask16 m1 = nr >= 32 ? (__mmask16)0xFFFF : nr <= 16 ? (__mmask16)0 : (__mmask16)((1u << (nr - 16)) - 1u);
     const __m512 bias0 = bias ? _mm512_maskz_loadu_ps(m0, bias) : _mm512_setzero_ps();
@@ -145,8 +156,7 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
                         int accumulate, int mr, int nr, const float *bias, int prefetch, const ahead_t *ah, int from,
                         int to) {
     (void)prefetch;   /* the AVX-512 kernel's B_PREFETCH only */
-    for (; ah && from < to; ++from)
-        _mm_prefetch((const char *)(ah->base + (from / ah->cols) * ah->rs + (from % ah->cols) * 16), _MM_HINT_T1);
+    for (; ah && from < to; ++from) _mm_prefetch(ahead_line(ah, from), _MM_HINT_T1);
     __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00;
     __m256 c30 = c00, c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00;
     const float *a0 = a, *a1 = a + (mr > 1 ? rs : 0), *a2 = a + (mr > 2 ? 2 * rs : 0);
@@ -308,20 +318,18 @@ static void gemm_packed_rows(int m, int n, int k, const float *a, int64_t cs, co
         const int rows = m - i0 < A_BLOCK * MR ? m - i0 : A_BLOCK * MR;
         for (int p0 = 0; p0 < k; p0 += KC_BLOCK) {
             const int kb = k - p0 < KC_BLOCK ? k - p0 : KC_BLOCK;
+            /* one panel: each value of a is used once, read where it lies; else the block's copy */
+            const int copied = n > NR;
             const float *block = a + i0 + (int64_t)p0 * cs;
-            if (n > NR) copy_rows_block(rows, kb, block, cs, ap);
+            if (copied) copy_rows_block(rows, kb, block, cs, ap);
             /* the next block: the next chunk of k, or the first of the next rows */
             const int q0 = p0 + KC_BLOCK < k ? p0 + KC_BLOCK : 0, n0 = q0 ? i0 : i0 + A_BLOCK * MR;
             const int nrows = n0 >= m ? 0 : m - n0 < A_BLOCK * MR ? m - n0 : A_BLOCK * MR;
             const int nkb = k - q0 < KC_BLOCK ? k - q0 : KC_BLOCK;
-            const ahead_t next = {a + n0 + (int64_t)q0 * cs, cs, (nrows + 15) / 16 + 1,
-                                  ROWS_AHEAD && nrows ? nkb * ((nrows + 15) / 16 + 1) : 0};
-            if (n > NR)
-                gemm_chunk(rows, n, kb, ap, (int64_t)kb * MR, 1, MR, bp + (int64_t)p0 * NR, (int64_t)k * NR,
-                           c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL, &next);
-            else                                      /* one panel: each value of a is used once, where it lies */
-                gemm_chunk(rows, n, kb, block, MR, 1, cs, bp + (int64_t)p0 * NR, (int64_t)k * NR,
-                           c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, NULL, &next);
+            const ahead_t next = ahead_rows(a + n0 + (int64_t)q0 * cs, cs, ROWS_AHEAD ? nkb : 0, nrows);
+            gemm_chunk(rows, n, kb, copied ? ap : block, copied ? (int64_t)kb * MR : MR, 1, copied ? MR : cs,
+                       bp + (int64_t)p0 * NR, (int64_t)k * NR, c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate,
+                       NULL, &next);
         }
     }
 }
@@ -367,8 +375,7 @@ static void gemm_packed_copied(int m, int n, int k, const float *a, int64_t rs, 
             const int nkb = q0 >= k ? 0 : k - q0 < KC_BLOCK ? k - q0 : KC_BLOCK;
             for (int i = 0; i < rows; ++i)
                 memcpy(ap + (int64_t)i * COPY_LDA, a + (int64_t)(i0 + i) * rs + p0, sizeof(float) * (size_t)kb);
-            const ahead_t next = {a + (int64_t)n0 * rs + q0, rs, (nkb + 15) / 16 + 1,
-                                  COPY_AHEAD ? nrows * ((nkb + 15) / 16 + 1) : 0};
+            const ahead_t next = ahead_rows(a + (int64_t)n0 * rs + q0, rs, COPY_AHEAD ? nrows : 0, nkb);
             gemm_chunk(rows, n, kb, ap, (int64_t)MR * COPY_LDA, COPY_LDA, 1, bp + (int64_t)p0 * NR, (int64_t)k * NR,
                        c + (int64_t)i0 * ldc, ldc, p0 > 0 ? 1 : accumulate, p0 > 0 ? NULL : bias, &next);
         }
