@@ -270,7 +270,7 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
             nn.init.constant_(self.depth_head.out.conv.bias, float(depth_bias_init))
         self.channels_last = check_policy(channels_last, "FreDSNet")
         self.apply_memory_format()
-        batch_norm.convert(self)        # the training forward of batch norm on NCHW maps natively (omnidl.nn.batch_norm)
+        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
 
     def check_input(self, x: Tensor) -> None:
         """Raise a ``ValueError`` unless ``x`` is ``(B, 3, H, W)`` with ``H, W`` multiples of 32."""

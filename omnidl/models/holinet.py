@@ -36,6 +36,7 @@ from torch import Tensor
 
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
+from omnidl.nn import batch_norm
 from omnidl.nn.conv_switch import conv_choice
 from omnidl.nn.inference import conv_bn_act, inference_ready
 
@@ -133,6 +134,7 @@ class HoLiNet(MemoryFormatPolicy, nn.Module):
                                                        allow_files=False))
         self.channels_last = check_policy(channels_last, "HoLiNet")
         self.apply_memory_format()
+        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
         # decoder inputs of conv="standard": concatenation and longitude wrap written into one buffer
         # (:func:`_cat_wrap`); False = the modules' own torch.cat + F.pad (the reference, same values)
         self.fuse_wrap = True

@@ -33,6 +33,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from omnidl.nn import batch_norm
 from omnidl.nn.inference import conv_bn_act, inference_ready
 from omnidl.nn.lstm import lstm_forward
 from omnidl.nn.padding import CircularConv2d
@@ -134,6 +135,7 @@ class HorizonNet(MemoryFormatPolicy, nn.Module):
         self.camera = camera if not hasattr(camera, "to_config") else camera.to_config()
         self.channels_last = check_policy(channels_last, "HorizonNet")
         self.apply_memory_format()
+        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
 
     def features(self, x: Tensor) -> Tensor:
         """``(B, 3, H, W) -> (B, feat_dim, W / step_cols)`` column features."""

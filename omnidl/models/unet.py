@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from omnidl.cameras.base import Camera
 from omnidl.cameras.resolve import check_image_size, resolve_camera
+from omnidl.nn import batch_norm
 from omnidl.nn.conv_switch import conv_choice
 from omnidl.nn.inference import conv_bn_act, inference_ready
 
@@ -101,6 +102,7 @@ class UNet(nn.Module):
             self.heads["semantic"] = nn.Conv2d(ch[0], num_classes, 1)
         if pretrained:
             self.load_pretrained(pretrained, strict=pretrained_strict)
+        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
         self.conv = "standard"
         self.camera: Camera | None = None
         if conv == "projected":

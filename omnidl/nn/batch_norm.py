@@ -12,8 +12,8 @@ standard deviation, is one native pass for the two sums per channel and one for 
 another layout, and autograd's over ``F.batch_norm`` under ``create_graph`` (differentiable again). Everything else
 is ``nn.BatchNorm2d``'s forward.
 
-:func:`convert` turns a model's plain ``nn.BatchNorm2d`` modules into this class in place (FreDSNet does so when
-built).
+:func:`convert` turns a model's plain ``nn.BatchNorm2d`` modules into this class in place (every registered model
+does so when built).
 """
 from __future__ import annotations
 

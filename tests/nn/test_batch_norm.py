@@ -158,10 +158,3 @@ def test_convert_keeps_subclasses_and_state_dict_keys():
     assert [type(x) for x in (m[1], m[2], m[3][0])] == [batch_norm.BatchNorm2d, Own, batch_norm.BatchNorm2d]
     assert list(m.state_dict()) == keys
     assert isinstance(m[1], nn.BatchNorm2d)
-
-
-def test_fredsnet_converts_its_batch_norms():
-    from omnidl.models.fredsnet import FreDSNet
-    model = FreDSNet(backbone="resnet18", width=0.25)
-    norms = [m for m in model.modules() if isinstance(m, nn.BatchNorm2d)]
-    assert norms and all(type(m) is batch_norm.BatchNorm2d for m in norms)
