@@ -13,7 +13,9 @@ another layout, and autograd's over ``F.batch_norm`` under ``create_graph`` (dif
 is ``nn.BatchNorm2d``'s forward.
 
 :func:`convert` turns a model's plain ``nn.BatchNorm2d`` modules into this class in place (every registered model
-does so when built).
+does so when built). :func:`with_activation` runs ``act(bn(x))`` for a ReLU or PReLU in the same native passes (FreDSNet's
+``ConvNormAct`` and Fourier blocks call it in training): the normalised map is never written, and the backward
+recomputes it from ``x``.
 """
 from __future__ import annotations
 
@@ -25,9 +27,15 @@ from torch.autograd.graph import increment_version
 
 from . import native
 from .capture import capturing
+from .prelu import PReLU
 
 #: ``False``: always ``nn.BatchNorm2d``'s own forward (benchmarks' in-process A/B)
 ENABLED = True
+#: ``False``: the activation after a batch norm runs as its own module (:func:`with_activation`; in-process A/B)
+FUSE_ACTIVATION = True
+
+#: the activations :func:`with_activation` fuses, as ``csrc/batch_norm.c`` numbers them (no activation is 0)
+ACTIVATIONS = {nn.Identity: 0, nn.ReLU: 1, nn.PReLU: 2, PReLU: 2}
 
 
 def _plain(t: Tensor | None) -> bool:
@@ -55,13 +63,38 @@ class BatchNorm2d(nn.BatchNorm2d):
     def forward(self, x: Tensor) -> Tensor:
         if not applies(self, x):
             return super().forward(x)
-        factor = 0.0 if self.momentum is None else self.momentum
-        if self.track_running_stats and self.num_batches_tracked is not None:      # as nn.BatchNorm2d
-            self.num_batches_tracked.add_(1)
-            if self.momentum is None:
-                factor = 1.0 / float(self.num_batches_tracked)
-        return _TrainingBatchNorm.apply(x, self.weight, self.bias, self.running_mean, self.running_var, self.eps,
-                                        factor)
+        return _train(self, x, 0, None)
+
+
+def with_activation(x: Tensor, norm: nn.Module, act: nn.Module) -> Tensor | None:
+    """``act(norm(x))`` in the native passes of one batch norm where that applies: ``norm`` a :class:`BatchNorm2d`
+    for which :func:`applies`, ``act`` an ``nn.Identity``, ``nn.ReLU`` or PReLU (one float32 slope per channel or one
+    for all), neither with hooks, :data:`FUSE_ACTIVATION` on. The output ``(B, C, H, W)`` is then the activation's
+    alone: no normalised map is written forward, and the backward recomputes the normalised values from ``x`` (the
+    sides of the kink as the forward's, the slope's gradient in float64). ``None`` where it does not apply (the
+    caller runs the modules)."""
+    code = ACTIVATIONS.get(type(act))
+    if not (FUSE_ACTIVATION and code is not None and type(norm) is BatchNorm2d and applies(norm, x)):
+        return None
+    if any(m._forward_hooks or m._forward_pre_hooks for m in (norm, act)) or nn.modules.module._global_forward_hooks \
+            or nn.modules.module._global_forward_pre_hooks:
+        return None
+    slope = getattr(act, "weight", None) if code == 2 else None
+    if slope is not None and not (slope.dtype == torch.float32 and slope.device.type == "cpu"
+                                  and slope.is_contiguous() and slope.numel() in (1, x.shape[1])):
+        return None
+    return _train(norm, x, code, slope)
+
+
+def _train(bn: nn.BatchNorm2d, x: Tensor, code: int, slope: Tensor | None) -> Tensor:
+    """The native training forward of ``bn`` (and activation ``code``, ``slope``) where :func:`applies`."""
+    factor = 0.0 if bn.momentum is None else bn.momentum
+    if bn.track_running_stats and bn.num_batches_tracked is not None:      # as nn.BatchNorm2d
+        bn.num_batches_tracked.add_(1)
+        if bn.momentum is None:
+            factor = 1.0 / float(bn.num_batches_tracked)
+    return _TrainingBatchNorm.apply(x, bn.weight, bn.bias, bn.running_mean, bn.running_var, bn.eps, factor, code,
+                                    slope)
 
 
 def convert(module: nn.Module) -> nn.Module:
@@ -73,50 +106,70 @@ def convert(module: nn.Module) -> nn.Module:
     return module
 
 
+def _activation(y: Tensor, code: int, slope: Tensor | None) -> Tensor:
+    """The activation ``code`` of :data:`ACTIVATIONS` applied to ``y`` by PyTorch's ops (differentiable)."""
+    if code == 1:
+        return F.relu(y)
+    return F.prelu(y, slope) if code == 2 else y
+
+
 class _TrainingBatchNorm(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor | None, bias: Tensor | None,  # type: ignore[override]
-                running_mean: Tensor | None, running_var: Tensor | None, eps: float, factor: float) -> Tensor:
+                running_mean: Tensor | None, running_var: Tensor | None, eps: float, factor: float, code: int,
+                slope: Tensor | None) -> Tensor:
         B, C, H, W = x.shape
         y = torch.empty_like(x, memory_format=torch.contiguous_format)
         mean, invstd = x.new_empty(2, C).unbind()
+        affine = x.new_empty(4, C) if code else None
         rc = native.library().omnidl_bn_train(
             x.data_ptr(), B, C, H * W, native.ptr(weight), native.ptr(bias), float(eps), float(factor),
             native.ptr(running_mean), native.ptr(running_var), y.data_ptr(), mean.data_ptr(), invstd.data_ptr(),
+            code, native.ptr(slope), int(slope is not None and slope.numel() > 1), native.ptr(affine),
             max(1, torch.get_num_threads()))
         for t in (running_mean, running_var):             # updated in place: their versions move, as PyTorch's
             if t is not None:
                 increment_version(t)
         if rc:
             raise RuntimeError(f"omnidl batch norm: the native pass returned {rc} for a map of shape {tuple(x.shape)}")
-        ctx.save_for_backward(x, weight, bias, mean, invstd)
-        ctx.eps = eps
+        ctx.save_for_backward(x, weight, bias, mean, invstd, slope, affine)
+        ctx.eps, ctx.code = eps, code
         return y
 
     @staticmethod
     def backward(ctx, gy: Tensor):  # type: ignore[override]
-        x, weight, bias, mean, invstd = ctx.saved_tensors
+        x, weight, bias, mean, invstd, slope, affine = ctx.saved_tensors
         need_x, need_w, need_b = ctx.needs_input_grad[:3]
+        need_s = ctx.needs_input_grad[8] and slope is not None
+        code = ctx.code
         if torch.is_grad_enabled():                       # create_graph: a differentiable backward
             with torch.enable_grad():
-                inputs = [t for t, need in ((x, need_x), (weight, need_w), (bias, need_b)) if need]
-                y = F.batch_norm(x, None, None, weight, bias, True, 0.0, ctx.eps)
-                grads = iter(torch.autograd.grad(y, inputs, gy, create_graph=True))
-            gx, gw, gb = (next(grads) if need else None for need in (need_x, need_w, need_b))
-            return gx, gw, gb, None, None, None, None
-        if not gy.is_contiguous():                        # PyTorch's for another layout of the gradient
-            gx, gw, gb = torch.ops.aten.native_batch_norm_backward(
-                gy, x, weight, None, None, mean, invstd, True, ctx.eps, [need_x, need_w and weight is not None,
-                                                                       need_b and bias is not None])
-            return (gx if need_x else None, gw if need_w else None, gb if need_b else None, None, None, None, None)
+                pairs = [(t, need) for t, need in ((x, need_x), (weight, need_w), (bias, need_b), (slope, need_s))]
+                y = _activation(F.batch_norm(x, None, None, weight, bias, True, 0.0, ctx.eps), code, slope)
+                grads = iter(torch.autograd.grad(y, [t for t, need in pairs if need], gy, create_graph=True))
+            gx, gw, gb, gs = (next(grads) if need else None for _, need in pairs)
+            return gx, gw, gb, None, None, None, None, None, gs
+        if not gy.is_contiguous():
+            if not code:                                  # PyTorch's for another layout of the gradient
+                gx, gw, gb = torch.ops.aten.native_batch_norm_backward(
+                    gy, x, weight, None, None, mean, invstd, True, ctx.eps,
+                    [need_x, need_w and weight is not None, need_b and bias is not None])
+                return (gx if need_x else None, gw if need_w else None, gb if need_b else None, None, None, None,
+                        None, None, None)
+            gy = gy.contiguous()
         B, C, H, W = x.shape
         gx = torch.empty_like(x) if need_x else None
         gw = x.new_empty(C) if need_w and weight is not None else None
         gb = x.new_empty(C) if need_b and bias is not None else None
+        gs = torch.empty(C, dtype=torch.float64) if need_s else None
         rc = native.library().omnidl_bn_train_backward(
             x.data_ptr(), gy.data_ptr(), B, C, H * W, native.ptr(weight), mean.data_ptr(), invstd.data_ptr(),
-            native.ptr(gx), native.ptr(gw), native.ptr(gb), max(1, torch.get_num_threads()))
+            native.ptr(gx), native.ptr(gw), native.ptr(gb), code, native.ptr(slope),
+            int(slope is not None and slope.numel() > 1), native.ptr(affine), native.ptr(gs),
+            max(1, torch.get_num_threads()))
         if rc:
             raise RuntimeError(f"omnidl batch norm: the native backward returned {rc} for a map of shape "
                                f"{tuple(x.shape)}")
-        return gx, gw, gb, None, None, None, None
+        if gs is not None:
+            gs = (gs if slope.numel() > 1 else gs.sum().reshape(1)).to(slope.dtype).view(slope.shape)
+        return gx, gw, gb, None, None, None, None, None, gs

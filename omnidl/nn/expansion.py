@@ -28,7 +28,6 @@ from torch import Tensor
 
 from . import batch_norm, native
 from .capture import capturing
-from .prelu import PReLU
 
 #: the most input channels taken (the native passes keep the input's pixel chunk in registers and cache)
 MAX_IN_CHANNELS = 8
@@ -36,11 +35,12 @@ MAX_IN_CHANNELS = 8
 MIN_PIXELS = 4096
 #: ``False``: always the modules' own ops (benchmarks' in-process A/B)
 ENABLED = True
-_ACT = {nn.Identity: 0, nn.ReLU: 1, nn.PReLU: 2, PReLU: 2}
 
 
 def _act_code(act: nn.Module) -> int | None:
-    return _ACT.get(type(act))
+    """0 (none), 1 (ReLU) or 2 (PReLU), as ``csrc/expansion.c`` numbers them (those of batch norm's fused
+    activations); ``None`` for another module."""
+    return batch_norm.ACTIVATIONS.get(type(act))
 
 
 def applies(x: Tensor, conv: nn.Module, bn: nn.Module, act: nn.Module) -> bool:

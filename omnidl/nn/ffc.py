@@ -45,7 +45,7 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from . import epilogue, inference, thin_layout, winograd
+from . import batch_norm, epilogue, inference, thin_layout, winograd
 from .capture import capturing
 from .padding import PaddingMode, make_conv2d
 from .unfold_conv import module_conv2d
@@ -140,7 +140,8 @@ def _norm_act(y: Tensor, norm: nn.Module, act: nn.Module, x: Tensor) -> Tensor:
     bn = norm if isinstance(norm, nn.BatchNorm2d) else None
     if (bn is not None or type(norm) is nn.Identity) and epilogue.over_output(y, x, act, bn) is not None:
         return y
-    return act(norm(y))
+    out = batch_norm.with_activation(y, norm, act)       # in training: one native batch norm pass
+    return act(norm(y)) if out is None else out
 
 
 #: ``False``: the spatial paths of an FFC in inference run as in training, through ``module_conv2d`` (benchmarks'
@@ -304,10 +305,9 @@ class FourierBlock(nn.Module):
                     torch.add(act(norm(y)), res, out=part)
             return out
         parts = []
-        if y_l is not None:
-            y_l = self.act_l(self.norm_l(y_l))
-            parts.append(y_l + x_l if self.residual else y_l)
-        if y_g is not None:
-            y_g = self.act_g(self.norm_g(y_g))
-            parts.append(y_g + x_g if self.residual else y_g)
+        for y, res, norm, act in ((y_l, x_l, self.norm_l, self.act_l), (y_g, x_g, self.norm_g, self.act_g)):
+            if y is not None:
+                out = batch_norm.with_activation(y, norm, act)   # in training: one native batch norm pass
+                y = act(norm(y)) if out is None else out
+                parts.append(y + res if self.residual else y)
         return torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]

@@ -199,9 +199,9 @@ def _load(path: Path) -> ctypes.CDLL:
     lib.omnidl_expand_input_grad.argtypes = [p, p, n, i, n, p, p, i, i, p, i, p, p, p, p, i]
     lib.omnidl_expand_input_grad.restype = i
     d, f = ctypes.c_double, ctypes.c_float
-    lib.omnidl_bn_train.argtypes = [p, n, n, n, p, p, d, d, p, p, p, p, p, i]
+    lib.omnidl_bn_train.argtypes = [p, n, n, n, p, p, d, d, p, p, p, p, p, i, p, i, p, i]
     lib.omnidl_bn_train.restype = i
-    lib.omnidl_bn_train_backward.argtypes = [p, p, n, n, n, p, p, p, p, p, p, i]
+    lib.omnidl_bn_train_backward.argtypes = [p, p, n, n, n, p, p, p, p, p, p, i, p, i, p, p, i]
     lib.omnidl_bn_train_backward.restype = i
     lib.omnidl_up2_forward.argtypes = [p, n, n, n, p, f, p, i]
     lib.omnidl_up2_forward.restype = i

@@ -16,7 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import epilogue, expansion
+from . import batch_norm, epilogue, expansion
 from .inference import conv_bn_act, fold_batchnorm, inference_ready
 from .padding import PaddingMode, make_conv2d
 from .prelu import PReLU
@@ -59,7 +59,14 @@ class ConvNormAct(nn.Module):
         if expansion.applies(x, self.conv, self.norm, self.act):   # a thin 1x1 expansion in training: fused
             return expansion.expansion(x, self.conv, self.norm, self.act, ready=True)
         folded = self._folded_params(x)
-        y = self.norm(module_conv2d(self.conv, x)) if folded is None else self.conv._conv_forward(x, *folded)
+        if folded is None:
+            y = module_conv2d(self.conv, x)
+            out = batch_norm.with_activation(y, self.norm, self.act)    # in training: one native batch norm pass
+            if out is not None:
+                return out
+            y = self.norm(y)
+        else:
+            y = self.conv._conv_forward(x, *folded)
         if type(self.act) is nn.ReLU:
             return F.relu_(y)          # y is a fresh conv/BN output that no backward needs: no extra buffer
         return self.act(y)

@@ -158,3 +158,131 @@ def test_convert_keeps_subclasses_and_state_dict_keys():
     assert [type(x) for x in (m[1], m[2], m[3][0])] == [batch_norm.BatchNorm2d, Own, batch_norm.BatchNorm2d]
     assert list(m.state_dict()) == keys
     assert isinstance(m[1], nn.BatchNorm2d)
+
+
+def _act_pair(kind: str, C: int) -> tuple[nn.Module, nn.Module]:
+    """An activation module and a copy: ``relu``, ``prelu`` (omnidl's, one slope per channel), ``prelu1`` (one for
+    all), ``nn.prelu`` (PyTorch's module) or ``identity``; the slopes random in [-0.5, 0.5]."""
+    from omnidl.nn.prelu import PReLU
+    make = {"relu": nn.ReLU, "prelu": lambda: PReLU(C), "prelu1": lambda: PReLU(1), "nn.prelu": lambda: nn.PReLU(C),
+            "identity": nn.Identity}[kind]
+    act = make()
+    if hasattr(act, "weight"):
+        with torch.no_grad():
+            act.weight.uniform_(-0.5, 0.5, generator=torch.Generator().manual_seed(7))
+    return act, copy.deepcopy(act)
+
+
+# (name, input shape, nn.BatchNorm2d keywords, activation of _act_pair, gradient layout): act(bn(x)) in the native
+# passes of one batch norm, against the two modules in PyTorch
+ACT_CASES = [
+    ("relu", (2, 8, 16, 32), {}, "relu", torch.contiguous_format),
+    ("prelu per channel", (2, 8, 16, 32), {}, "prelu", torch.contiguous_format),
+    ("prelu, one slope", (3, 5, 7, 9), {}, "prelu1", torch.contiguous_format),
+    ("nn.PReLU", (1, 16, 2, 3), {}, "nn.prelu", torch.contiguous_format),
+    ("identity", (1, 512, 4, 8), {}, "identity", torch.contiguous_format),
+    ("relu, no affine, cumulative average", (2, 4, 5, 6), {"affine": False, "momentum": None}, "relu",
+     torch.contiguous_format),
+    ("prelu, no running statistics", (2, 4, 5, 6), {"track_running_stats": False}, "prelu", torch.contiguous_format),
+    ("prelu, a channels-last gradient (made contiguous)", (2, 8, 5, 6), {}, "prelu", torch.channels_last),
+]
+
+
+@pytest.mark.parametrize("name,shape,kw,kind,layout", ACT_CASES, ids=[c[0] for c in ACT_CASES])
+def test_batch_norm_with_activation_matches_the_two_modules(name, shape, kw, kind, layout, monkeypatch):
+    calls = _native_calls(monkeypatch)
+    ref, new = _pair(shape[1], **kw)
+    act_ref, act = _act_pair(kind, shape[1])
+    g = torch.Generator().manual_seed(1)
+    x = (torch.randn(shape, generator=g) * 3 + 1).requires_grad_()
+    x2 = x.detach().clone().requires_grad_()
+    gy = torch.randn(shape, generator=g).contiguous(memory_format=layout)
+    for _ in range(2):                                   # the running statistics' update twice
+        y1, y2 = act_ref(ref(x)), batch_norm.with_activation(x2, new, act)
+        y1.backward(gy)
+        y2.backward(gy)
+    assert len(calls) == 4 and sum(c[0] == "backward" for c in calls) == 2
+    torch.testing.assert_close(y2, y1, rtol=0, atol=1e-5)
+    assert y2.is_contiguous()
+    torch.testing.assert_close(x2.grad, x.grad, rtol=1e-5, atol=1e-5)
+    for p_new, p_ref in zip([*new.parameters(), *act.parameters()], [*ref.parameters(), *act_ref.parameters()]):
+        torch.testing.assert_close(p_new.grad, p_ref.grad, rtol=1e-5, atol=1e-4)
+    for key, value in ref.state_dict().items():
+        torch.testing.assert_close(new.state_dict()[key], value, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["relu", "prelu"])
+def test_batch_norm_with_activation_keeps_pytorchs_sides_of_nan(kind):
+    # a NaN in a channel makes its statistics NaN: every value of that channel, and its gradients, as in PyTorch
+    ref, new = _pair(3)
+    act_ref, act = _act_pair(kind, 3)
+    x = torch.randn(2, 3, 4, 5, generator=torch.Generator().manual_seed(2))
+    x[1, 1, 2, 3] = float("nan")
+    x, x2 = x.requires_grad_(), x.detach().clone().requires_grad_()
+    y1, y2 = act_ref(ref(x)), batch_norm.with_activation(x2, new, act)
+    gy = torch.randn(x.shape, generator=torch.Generator().manual_seed(3))
+    y1.backward(gy)
+    y2.backward(gy)
+    torch.testing.assert_close(y2, y1, rtol=0, atol=1e-5, equal_nan=True)
+    torch.testing.assert_close(x2.grad, x.grad, rtol=1e-5, atol=1e-5, equal_nan=True)
+
+
+def test_batch_norm_with_activation_second_derivatives_are_autograds():
+    ref, new = _pair(3)
+    act_ref, act = _act_pair("prelu", 3)
+    x = torch.randn(2, 3, 4, 5, generator=torch.Generator().manual_seed(4), requires_grad=True)
+    out = []
+    for y in (act_ref(ref(x)), batch_norm.with_activation(x, new, act)):
+        gx, gs = torch.autograd.grad((y ** 2).sum(), [x, act.weight if len(out) else act_ref.weight],
+                                     create_graph=True)
+        out.append((gx, gs, torch.autograd.grad(gx.sum() + gs.sum(), x)[0]))
+    for a, b in zip(out[1], out[0]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+
+
+def _hooked(module: nn.Module) -> nn.Module:
+    module.register_forward_hook(lambda *args: None)
+    return module
+
+
+# (name, how to make (norm, act, x) from a converted norm, an omnidl PReLU and an input): with_activation declines
+# (returns None) and the caller runs the modules
+DECLINED = [
+    ("a plain nn.BatchNorm2d", lambda bn, act, x: (nn.BatchNorm2d(4), act, x)),
+    ("eval mode", lambda bn, act, x: (bn.eval(), act, x)),
+    ("channels-last input", lambda bn, act, x: (bn, act, x.contiguous(memory_format=torch.channels_last))),
+    ("another activation", lambda bn, act, x: (bn, nn.GELU(), x)),
+    ("a hook on the norm", lambda bn, act, x: (_hooked(bn), act, x)),
+    ("a hook on the activation", lambda bn, act, x: (bn, _hooked(act), x)),
+    ("a float64 slope", lambda bn, act, x: (bn, act.double(), x)),
+    ("three slopes for four channels", lambda bn, act, x: (bn, nn.PReLU(3), x)),
+    ("switched off", lambda bn, act, x: (bn, act, x)),
+]
+
+
+@pytest.mark.parametrize("name,make", DECLINED, ids=[c[0] for c in DECLINED])
+def test_batch_norm_with_activation_declines(name, make, monkeypatch):
+    calls = _native_calls(monkeypatch)
+    if name == "switched off":
+        monkeypatch.setattr(batch_norm, "FUSE_ACTIVATION", False)
+    _, bn = _pair(4)
+    act, _ = _act_pair("prelu", 4)
+    norm, act, x = make(bn, act, torch.randn(2, 4, 6, 8))
+    assert batch_norm.with_activation(x, norm, act) is None
+    assert calls == []
+
+
+def test_fredsnet_training_fuses_its_activations(monkeypatch):
+    # ConvNormAct and the Fourier blocks' parts run batch norm and PReLU/ReLU in one native forward and backward
+    from omnidl.models.fredsnet import FreDSNet
+    codes = []
+    lib = native.library()
+    real = lib.omnidl_bn_train
+
+    def counted(*args):
+        codes.append(args[13])
+        return real(*args)
+    monkeypatch.setattr(lib, "omnidl_bn_train", counted)
+    model = FreDSNet(backbone="resnet18", width=0.25).train()
+    sum(v.float().mean() for v in model(torch.rand(1, 3, 64, 128)).values()).backward()
+    assert codes.count(2) >= 20 and codes.count(0) >= 10, codes
