@@ -80,8 +80,7 @@ def with_activation(x: Tensor, norm: nn.Module, act: nn.Module) -> Tensor | None
             or nn.modules.module._global_forward_pre_hooks:
         return None
     slope = getattr(act, "weight", None) if code == 2 else None
-    if slope is not None and not (slope.dtype == torch.float32 and slope.device.type == "cpu"
-                                  and slope.is_contiguous() and slope.numel() in (1, x.shape[1])):
+    if slope is not None and not (_plain(slope) and slope.numel() in (1, x.shape[1])):
         return None
     return _train(norm, x, code, slope)
 
