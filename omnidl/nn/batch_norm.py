@@ -85,6 +85,12 @@ def with_activation(x: Tensor, norm: nn.Module, act: nn.Module) -> Tensor | None
     return _train(norm, x, code, slope)
 
 
+def norm_act(x: Tensor, norm: nn.Module, act: nn.Module) -> Tensor:
+    """``act(norm(x))``: :func:`with_activation` where it applies, else the two modules."""
+    out = with_activation(x, norm, act)
+    return act(norm(x)) if out is None else out
+
+
 def _train(bn: nn.BatchNorm2d, x: Tensor, code: int, slope: Tensor | None) -> Tensor:
     """The native training forward of ``bn`` (and activation ``code``, ``slope``) where :func:`applies`."""
     factor = 0.0 if bn.momentum is None else bn.momentum

@@ -140,8 +140,7 @@ def _norm_act(y: Tensor, norm: nn.Module, act: nn.Module, x: Tensor) -> Tensor:
     bn = norm if isinstance(norm, nn.BatchNorm2d) else None
     if (bn is not None or type(norm) is nn.Identity) and epilogue.over_output(y, x, act, bn) is not None:
         return y
-    out = batch_norm.with_activation(y, norm, act)       # in training: one native batch norm pass
-    return act(norm(y)) if out is None else out
+    return batch_norm.norm_act(y, norm, act)             # in training: one native batch norm pass
 
 
 #: ``False``: the spatial paths of an FFC in inference run as in training, through ``module_conv2d`` (benchmarks'
@@ -307,7 +306,6 @@ class FourierBlock(nn.Module):
         parts = []
         for y, res, norm, act in ((y_l, x_l, self.norm_l, self.act_l), (y_g, x_g, self.norm_g, self.act_g)):
             if y is not None:
-                out = batch_norm.with_activation(y, norm, act)   # in training: one native batch norm pass
-                y = act(norm(y)) if out is None else out
+                y = batch_norm.norm_act(y, norm, act)            # in training: one native batch norm pass
                 parts.append(y + res if self.residual else y)
         return torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]

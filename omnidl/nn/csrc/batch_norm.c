@@ -218,7 +218,7 @@ static inline __attribute__((always_inline)) void channel_backward(
  * (w = 1 without affine parameters). x, gy, gx (B, C, hw) contiguous; w: C values or NULL; mean, invstd: the
  * forward's; act, slope, per_channel: the forward's activation, affine: its save_affine (used with an activation);
  * gx, gw, gb, gslope (C doubles, PReLU): written where not NULL. One pass for the sums, one for gx. Returns 0; 2
- * when there are no values per channel. */
+ * when there are no values per channel; 3 for an activation without `affine`. */
 int omnidl_bn_train_backward(const float *x, const float *gy, int64_t B, int64_t C, int64_t hw, const float *w,
                              const float *mean, const float *invstd, float *gx, float *gw, float *gb, int act,
                              const float *slope, int per_channel, const float *affine, double *gslope,
