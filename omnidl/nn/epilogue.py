@@ -106,7 +106,7 @@ def affine_act(y: Tensor, act: nn.Module, bn: nn.Module | None = None, residual:
     else:
         with torch.no_grad():
             s, t = (v.detach().contiguous() for v in bn_scale_shift(None, bn))
-    rc = lib.omnidl_affine_prelu_add(y.data_ptr(), ysb, ysc, ysn, None if residual is None else residual.data_ptr(),
+    rc = lib.omnidl_affine_prelu_add(y.data_ptr(), ysb, ysc, ysn, native.ptr(residual),
                                      rsb, rsc, rsn, out.data_ptr(), osb, osc, osn, B, C, H * W, s.data_ptr(),
                                      t.data_ptr(), a.data_ptr(),
                                      1 if y.numel() < SERIAL_NUMEL else max(1, torch.get_num_threads()))

@@ -126,7 +126,7 @@ class _Expansion(torch.autograd.Function):
         sl = slope.detach().contiguous() if slope is not None else None
         lib = native.library()
         rc = lib.omnidl_expand_forward(x.data_ptr(), B, cin, H * W, wf.data_ptr(), bf.data_ptr(), cout, code,
-                                       None if sl is None else sl.data_ptr(), int(sl is not None and sl.numel() > 1),
+                                       native.ptr(sl), int(sl is not None and sl.numel() > 1),
                                        y.data_ptr(), max(1, torch.get_num_threads()))
         if rc:
             raise RuntimeError(f"omnidl expansion: the native kernel returned {rc}")
@@ -144,7 +144,7 @@ class _Expansion(torch.autograd.Function):
         cout, n, P = w.shape[0], B * H * W, H * W
         g = g.contiguous()
         lib = native.library()
-        common = (B, cin, P, wf.data_ptr(), bf.data_ptr(), cout, ctx.code, None if sl is None else sl.data_ptr(),
+        common = (B, cin, P, wf.data_ptr(), bf.data_ptr(), cout, ctx.code, native.ptr(sl),
                   int(sl is not None and sl.numel() > 1))
         sums = torch.empty(cout, cin + 2, dtype=torch.float64)
         rc = lib.omnidl_expand_sums(x.data_ptr(), g.data_ptr(), *common, sums.data_ptr(),

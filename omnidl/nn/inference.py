@@ -274,10 +274,9 @@ def _dense_into(x: Tensor, conv: nn.Conv2d, entry: _Entry, act: Activation, resi
     if lib is None:
         return None
     wp, wm = packing
-    rc = lib.omnidl_dense_forward(x.data_ptr(), C, C, B * H * W, None if wm is None else wm.data_ptr(),
-                                  None if wp is None else wp.data_ptr(), cout,
-                                  None if entry.bias is None else entry.bias.data_ptr(), residual.data_ptr(), cout,
-                                  1, int(act == "relu"), DENSE_BLOCK, torch.get_num_threads())
+    rc = lib.omnidl_dense_forward(x.data_ptr(), C, C, B * H * W, native.ptr(wm), native.ptr(wp), cout,
+                                  native.ptr(entry.bias), residual.data_ptr(), cout, 1, int(act == "relu"),
+                                  DENSE_BLOCK, torch.get_num_threads())
     if rc:
         raise RuntimeError(f"omnidl dense 1x1 convolution: the native kernel returned {rc} (missing operand)")
     return residual

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from . import fused
+from . import fused, native
 
 #: the largest ``in_channels * out_channels`` taken (the transformed weight is 16 / 9 of the weight's size)
 MAX_CHANNEL_PRODUCT = 512 * 512
@@ -105,7 +105,7 @@ def forward(lib, x: Tensor, wrap: int, packed: Tensor, cout: int, bias: Tensor |
     channels-last; ``packed`` from :func:`pack`."""
     B, C, H, W = x.shape
     rc = lib.omnidl_wino_forward(x.data_ptr(), B, H, W, C, int(wrap), packed.data_ptr(), cout,
-                                 None if bias is None else bias.data_ptr(), out.data_ptr(), int(accumulate),
+                                 native.ptr(bias), out.data_ptr(), int(accumulate),
                                  int(relu), block_tiles(C, cout), torch.get_num_threads())
     check(rc)
     return out

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from . import winograd
+from . import native, winograd
 
 #: the fewest tiles (pairs of outputs) in the batch are ``MIN_TILES + C * Cout // TILES_PER_WEIGHT``: with fewer,
 #: the transformed weight (4/3 of the weight) is read for too few products. Measured on 2 threads (AVX-512 host)
@@ -67,7 +67,7 @@ def forward(lib, x: Tensor, wrap: int, packed: Tensor, cout: int, bias: Tensor |
     B, C, H, W = x.shape
     out = torch.empty((B, cout, out_height(H), W), dtype=x.dtype, memory_format=torch.channels_last)
     rc = lib.omnidl_wino_rows_forward(x.data_ptr(), B, H, W, C, 2, int(wrap), packed.data_ptr(), cout,
-                                      None if bias is None else bias.data_ptr(), out.data_ptr(), int(relu),
+                                      native.ptr(bias), out.data_ptr(), int(relu),
                                       block_tiles(C, cout), torch.get_num_threads())
     winograd.check(rc, "row Winograd convolution")
     return out
