@@ -15,7 +15,7 @@ layout ground truth. Why op-count-bound code collapses: every multi-threaded op 
 the cores shared, each join waits until the descheduled worker runs again (a scheduler time slice, ms), so a
 path made of thousands of 10-100 us ops pays that wait thousands of times while a dense convolution pays it a
 few dozen times. The fix is fewer joins: the small-op paths (gyroscope photometric steps, renderer) run with
-``threads="auto"`` (:func:`omnidl.nn.threads.auto_threads`: all threads while every one has a free CPU,
+``threads="auto"`` (:func:`omnidl.utils.threads.auto_threads`: all threads while every one has a free CPU,
 one when the run queue is longer than the CPUs), the Equi layers with one join per call (their worker pool).
 """
 from __future__ import annotations
@@ -52,7 +52,7 @@ def _paths(threads: int) -> dict:
     from omnidl.geometry.rotations import random_tilt_rotation
     from omnidl.models import create_model
     from omnidl.nn import ProjectedConv2d
-    from omnidl.nn.threads import limit_threads
+    from omnidl.utils.threads import limit_threads
     from omnidl.postprocess.gyroscope.mpp import mpp_yaw
     from omnidl.postprocess.gyroscope.pipeline import Gyroscope, GyroscopeOptions, model_horizon_fn
     from omnidl.postprocess.gyroscope.pvg import pvg_refine

@@ -57,7 +57,7 @@ def speed(args) -> dict:
     from benchmarks._timing import host_line, interleaved, is_loaded, load_line, ratio, target_line
     from benchmarks.mpp_reference import reference_mpp_yaw
     from omnidl.models import create_model
-    from omnidl.nn.threads import limit_threads
+    from omnidl.utils.threads import limit_threads
     torch.set_num_threads(args.threads)
     icosahedron_vertices(5)
     R = random_tilt_rotation(1, math.radians(30), generator=torch.Generator().manual_seed(0), dtype=torch.float64)

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1] / "omnidl"
 
 #: floor of every library package of omnidl (see DESIGN.md "The shape of the code")
 RANKS = {
-    "utils": 0, "classes": 0,
+    "utils": 0, "classes": 0, "ops": 0,
     "cameras": 1,
     "geometry": 2,
     "nn": 3, "viz": 3,

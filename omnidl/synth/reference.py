@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from omnidl.geometry.rotations import upright_rotation
-from omnidl.nn.threads import limit_threads
+from omnidl.utils.threads import limit_threads
 
 from . import materials as M
 from .materials import CHECKER, NOISE, PANEL, PLAIN, STRIPES
@@ -381,7 +381,7 @@ def render_reference(scene: Scene, camera, pose: np.ndarray, layout: bool = True
     ``camera``, ``manhattan``, ``num_walls``, ``rig_radius`` and the scene seed. ``shadows`` adds
     box shadows from the point lights (slower). ``threads``: intra-op threads of the render (many small
     ops): ``"auto"`` = the process setting while every thread has a free CPU, 1 when the CPUs are
-    oversubscribed (:func:`omnidl.nn.threads.auto_threads`; multi-threaded small ops collapse there);
+    oversubscribed (:func:`omnidl.utils.threads.auto_threads`; multi-threaded small ops collapse there);
     an int caps it; ``None`` leaves it. The result does not depend on it.
     """
     with limit_threads(threads):

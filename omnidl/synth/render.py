@@ -12,7 +12,7 @@ from torch import Tensor
 
 from omnidl.classes import CLASS_ID
 from omnidl.geometry.rotations import upright_rotation
-from omnidl.nn.threads import limit_threads
+from omnidl.utils.threads import limit_threads
 
 from . import materials as M
 from .layout import layout_ground_truth
@@ -106,7 +106,7 @@ def render(scene: Scene, camera, pose: np.ndarray, layout: bool = True, dtype: t
     ``camera``, ``manhattan``, ``num_walls``, ``rig_radius`` and the scene seed. ``shadows`` adds
     box shadows from the point lights (slower). ``threads``: intra-op threads of the render (many small
     ops): ``"auto"`` = the process setting while every thread has a free CPU, 1 when the CPUs are
-    oversubscribed (:func:`omnidl.nn.threads.auto_threads`; multi-threaded small ops collapse there);
+    oversubscribed (:func:`omnidl.utils.threads.auto_threads`; multi-threaded small ops collapse there);
     an int caps it; ``None`` leaves it. The result does not depend on it.
     """
     with limit_threads(threads):

@@ -26,7 +26,7 @@ from torch import Tensor
 from omnidl.geometry.horizon import HorizonFitOptions, fit_horizon
 from omnidl.geometry.panorama import rotate_panorama
 from omnidl.geometry.rotations import matrix_to_euler, tilt_rotation, up_vector
-from omnidl.nn.threads import limit_threads
+from omnidl.utils.threads import limit_threads
 
 from .icosahedron import icosahedron_vertices
 from .mpp import mpp_samples, mpp_vertex_field, mpp_yaw
@@ -54,14 +54,14 @@ class GyroscopeOptions:
     horizon: dict = field(default_factory=dict)  # HorizonFitOptions overrides
     # intra-op threads of the photometric steps and the horizon fit (thousands of small ops): "auto" = the
     # process setting while the CPUs are not oversubscribed, else 1 (a fork/join per op collapses on a busy
-    # machine; omnidl.nn.threads.auto_threads); an int caps it; None = the process setting
+    # machine; omnidl.utils.threads.auto_threads); an int caps it; None = the process setting
     photometric_threads: int | str | None = "auto"
 
 
 def model_horizon_fn(model: torch.nn.Module, height: int = 128, threads: int | str | None = "auto") -> HorizonFn:
     """Wrap a HoLiNet-like model (outputs ``"horizon"``, ``"vp"`` logits) into a ``horizon_fn``.
 
-    ``threads``: intra-op threads of the forward (see :func:`omnidl.nn.threads.limit_threads`): ``"auto"``
+    ``threads``: intra-op threads of the forward (see :func:`omnidl.utils.threads.limit_threads`): ``"auto"``
     keeps the process setting unless the CPUs are oversubscribed, then runs on one thread (a small network
     is thousands of short ops: measured 12x more CPU time on 2 threads than on 1 under load)."""
     def fn(images: Tensor) -> tuple[Tensor, Tensor]:

@@ -13,7 +13,7 @@ from omnidl.postprocess.gyroscope.photometric import (SphereImage, apply_update,
                                                       yaw_rotations)
 from omnidl.postprocess.gyroscope.pvg import pvg_refine, spherical_gradient, spherical_gradient_fast
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
-from omnidl.nn.threads import limit_threads
+from omnidl.utils.threads import limit_threads
 
 TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 

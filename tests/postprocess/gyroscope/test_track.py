@@ -9,7 +9,7 @@ import torch
 from omnidl.data.horizon import horizon_heatmaps
 from omnidl.geometry.rotations import random_tilt_rotation
 from omnidl.models import create_model
-from omnidl.nn.threads import limit_threads
+from omnidl.utils.threads import limit_threads
 from omnidl.postprocess.gyroscope.pipeline import Gyroscope, GyroscopeOptions, model_horizon_fn, pipelining_pays
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from omnidl.nn import threads as T
+from omnidl.utils import threads as T
 
 
 def test_limit_threads_caps_and_restores():
