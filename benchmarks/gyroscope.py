@@ -11,11 +11,11 @@ also timed alone (also as in a frame: with the reference's parts prepared once).
 ``pipeline="auto"``: after the first frame, the network of the next frame in a worker thread while this one's
 horizon fit, MPP and PVG run, one intra-op thread each, where that pays, else ``estimate`` frame by frame) is timed
 on a few frames: its fps is the throughput of a stream.
-The named baseline, interleaved in the same run, is a reference-style MPP
-(``benchmarks/mpp_reference.py``: one start, all N x N Gaussian sums re-computed every Gauss-Newton
-iteration) on a pure-yaw pair, against omnidl's MPP with one start on the same pair. Targets (issue 17,
-item 1): >= 8 fps (ResNet-50-Equi), >= 20 fps (small), MPP >= 1.5x the baseline. (The published MPP
-gyroscope runs at ~3 images/s at n = 3.)
+The named baseline, interleaved in the same run, is MPP evaluated as the published gyroscope evaluates it
+(``tests/reference/gyroscope.py``'s ``mpp_yaw_reference`` with ``tries=1, grid_height=0``: one start, all N x N
+Gaussian sums re-computed every Gauss-Newton iteration) on a pure-yaw pair, against omnidl's MPP with one start
+on the same pair. Targets (issue 17, item 1): >= 8 fps (ResNet-50-Equi), >= 20 fps (small), MPP >= 1.5x the
+baseline. (The published MPP gyroscope runs at ~3 images/s at n = 3.)
 
 ``accuracy``: error histograms (PNG) and a markdown/JSON table of
 (a) the horizon hook on ground-truth heat maps of random rotations (tilts up to 180°),
@@ -55,7 +55,7 @@ from omnidl.postprocess.gyroscope.scene import procedural_panorama  # noqa: E402
 def speed(args) -> dict:
     """Per-frame cost of the gyroscope at 256x128, every job interleaved with the baseline (see module doc)."""
     from benchmarks._timing import host_line, interleaved, is_loaded, load_line, ratio, target_line
-    from benchmarks.mpp_reference import reference_mpp_yaw
+    from tests.reference.gyroscope import mpp_yaw_reference, pvg_refine_reference
     from omnidl.models import create_model
     from omnidl.utils.threads import limit_threads
     torch.set_num_threads(args.threads)
@@ -91,8 +91,10 @@ def speed(args) -> dict:
     def _single(fn):
         with limit_threads("auto"):
             fn()
+    def baseline():  # MPP as the published gyroscope evaluates it: one start, the N x N sums every iteration
+        return mpp_yaw_reference(cur_yaw, ref, level=3, lambda_g=0.325, tries=1, grid_height=0)
     jobs = {
-        "baseline MPP (reference-style, 1 start)": one(lambda: reference_mpp_yaw(cur_yaw, ref)),
+        "baseline MPP (reference-style, 1 start)": one(baseline),
         "MPP 1 start": one(lambda: mpp_yaw(cur_yaw, ref, level=3, lambda_g=0.325, tries=1)),
         "MPP 4 starts": one(lambda: mpp_yaw(cur, ref, R.float(), level=3, lambda_g=0.325, tries=4)),
         "PVG (n=5)": one(lambda: pvg_refine(cur, ref, R.float(), level=5)),
@@ -100,10 +102,10 @@ def speed(args) -> dict:
             cur, ref, R.float(), level=3, lambda_g=0.325, tries=4, reference_field=gs.ref_mpp_field)),
         "PVG (n=5), prepared reference (as in a frame)": one(lambda: pvg_refine(
             cur, ref, R.float(), level=5, reference_values=gs.ref_pvg)),
-        "MPP 1 start, impl='reference' (before issue 17)": one(
-            lambda: mpp_yaw(cur_yaw, ref, level=3, lambda_g=0.325, tries=1, impl="reference")),
-        "PVG (n=5), impl='reference' (before issue 17)": one(
-            lambda: pvg_refine(cur, ref, R.float(), level=5, impl="reference")),
+        "MPP 1 start, reference loop (before issue 17)": one(
+            lambda: mpp_yaw_reference(cur_yaw, ref, level=3, lambda_g=0.325, tries=1)),
+        "PVG (n=5), reference loop (before issue 17)": one(
+            lambda: pvg_refine_reference(cur, ref, R.float(), level=5)),
         "horizon RANSAC": one(lambda: fit_horizon(hl, vp)),
         "frame HoLiNet-R50-Equi": lambda: gyros["holinet_resnet50_equi"].estimate(cur),
         "frame HoLiNet-small": lambda: gyros["holinet_small_std"].estimate(cur),
@@ -133,13 +135,13 @@ def speed(args) -> dict:
     for k in jobs:
         print(f"| {k} | {med[k] * 1e3:.1f} | {min(times[k]) * 1e3:.1f} | {1 / med[k]:.1f} | "
               f"{ratio(times, k, base):.2f}x |")
-    _, it_b = reference_mpp_yaw(cur_yaw, ref)
+    it_b = baseline().iterations
     it_f = mpp_yaw(cur_yaw, ref, level=3, lambda_g=0.325, tries=1).iterations
     r_mpp = ratio(times, base, "MPP 1 start")
     print(f"(iterations to converge on the pure-yaw pair: baseline {it_b}, omnidl MPP {it_f})")
-    print(f"this change: MPP 1 start {ratio(times, 'MPP 1 start, impl=' + chr(39) + 'reference' + chr(39) + ' (before issue 17)', 'MPP 1 start'):.2f}x "
-          f"faster, PVG {ratio(times, 'PVG (n=5), impl=' + chr(39) + 'reference' + chr(39) + ' (before issue 17)', 'PVG (n=5)'):.2f}x faster "
-          "than the previous implementation (same results, tests/postprocess/gyroscope/test_fast_paths.py)")
+    print(f"issue 17: MPP 1 start {ratio(times, 'MPP 1 start, reference loop (before issue 17)', 'MPP 1 start'):.2f}x "
+          f"faster, PVG {ratio(times, 'PVG (n=5), reference loop (before issue 17)', 'PVG (n=5)'):.2f}x faster "
+          "than the reference loops (same results, tests/postprocess/gyroscope/test_fast_paths.py)")
     print(target_line("MPP 1 start speed-up", f"{med['MPP 1 start'] * 1e3:.1f} ms", r_mpp,
                       "faster than the reference-style baseline", ">= 1.5x", r_mpp >= 1.5, loaded))
     res = {"threads": args.threads, "loaded": loaded, "median_s": med, "mpp_speedup": r_mpp}

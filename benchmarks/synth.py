@@ -5,7 +5,8 @@
 Targets (issue 17, item 5; issue 4 had 0.5 s / 50 ms): 1024x512 <= 150 ms and 256x128 <= 25 ms on 2 CPU cores. The named baseline measured in
 the same run is ``brute force``: the same render with object culling disabled (every box slab-tested
 against every pixel); the ratio baseline / engine is printed next to the absolute medians. ``previous``
-is the renderer before the issue-17 speed work (``omnidl.synth.reference``, same outputs bit for bit),
+is the renderer before the issue-17 speed work (``tests/reference/synth_renderer.py``, same outputs to float32
+rounding),
 timed interleaved with the engine (``--no-previous`` skips it). Process CPU
 time is printed too: on a shared machine it is the steadier figure (wall time includes waiting for cores).
 """
@@ -24,7 +25,7 @@ from benchmarks._timing import (host_line, interleaved, is_loaded, load_line, me
 from omnidl.cameras import build  # noqa: E402
 from omnidl.synth import place_camera, render, sample_room  # noqa: E402
 from omnidl.synth import raycast  # noqa: E402
-from omnidl.synth.reference import render_reference  # noqa: E402
+from tests.reference.synth_renderer import render_reference  # noqa: E402
 
 
 class _BruteForce:
@@ -56,7 +57,7 @@ def main() -> None:
     p.add_argument("--cameras", nargs="+", default=["equirect", "noncentral_pano"])
     p.add_argument("--profile", action="store_true")
     p.add_argument("--no-previous", dest="previous", action="store_false",
-                   help="skip the interleaved timing of the previous renderer (omnidl.synth.reference)")
+                   help="skip the interleaved timing of the previous renderer (tests/reference/synth_renderer.py)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} threads, median of {args.reps}")

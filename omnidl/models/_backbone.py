@@ -27,10 +27,8 @@ import torch
 import torch.nn as nn
 import torchvision
 from torch import Tensor
-from torchvision.models.resnet import BasicBlock, Bottleneck
 
-from omnidl.nn.inference import conv_bn_act, inference_ready
-from omnidl.nn.unfold_conv import module_conv2d
+from ._checks import check_image
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +37,8 @@ RESNETS = ("resnet18", "resnet34", "resnet50", "resnet101", "resnet152",
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 _STRIDES = (2, 4, 8, 16, 32)
+
+torch.fx.wrap("check_image")
 
 
 def build_resnet(name: str) -> nn.Module:
@@ -136,69 +136,17 @@ class ResNetFeatures(nn.Module):
         return max(self.strides)
 
     def forward(self, x: Tensor) -> list[Tensor]:
-        if x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"ResNetFeatures expects (B, 3, H, W) RGB images, got shape {tuple(x.shape)}")
+        check_image(x, "ResNetFeatures")
         if self.normalize:
             x = (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
         b = self.body
-        feats = []
-        if inference_ready(x, b.conv1, b.bn1):
-            x = conv_bn_act(x, b.conv1, b.bn1, "relu", ready=True)
-        else:
-            x = b.relu(b.bn1(b.conv1(x)))
-        last = max(self.out_indices)
-        if 0 in self.out_indices:
-            feats.append(x)
+        x = b.relu(b.bn1(b.conv1(x)))
+        feats = [x] if 0 in self.out_indices else []
         x = b.maxpool(x)
         for i, layer in enumerate((b.layer1, b.layer2, b.layer3, b.layer4), start=1):
-            if i > last:
+            if i > max(self.out_indices):
                 break
-            for j, block in enumerate(layer):
-                # a layer's first block may get a returned feature map: its input is not the blocks' to overwrite
-                x = residual_block(block, x, owns_input=j > 0 or i - 1 not in self.out_indices)
+            x = layer(x)
             if i in self.out_indices:
                 feats.append(x)
         return feats
-
-
-def residual_block(block: nn.Module, x: Tensor, owns_input: bool = False) -> Tensor:
-    """``block(x)`` for a torchvision ``Bottleneck``/``BasicBlock``; in inference (:func:`inference_ready`) each
-    Conv-BN(-ReLU) is one call of :func:`omnidl.nn.inference.conv_bn_act`, the last one with the residual sum and
-    the ReLU, written over the residual when that is the downsampling's output or, with ``owns_input`` (nothing
-    else holds ``x``), ``x`` itself. Other blocks, training and autograd call the block itself."""
-    ds = block.downsample
-    if type(block) is Bottleneck:
-        convs = ((block.conv1, block.bn1), (block.conv2, block.bn2), (block.conv3, block.bn3))
-    elif type(block) is BasicBlock:
-        convs = ((block.conv1, block.bn1), (block.conv2, block.bn2))
-    else:
-        return block(x)
-    if ds is not None and not (type(ds) is nn.Sequential and len(ds) == 2 and isinstance(ds[0], nn.Conv2d)
-                               and isinstance(ds[1], nn.BatchNorm2d)):
-        return block(x)
-    modules = [m for pair in convs for m in pair] + ([] if ds is None else list(ds))
-    if type(block.relu) is not nn.ReLU or block._forward_hooks or block._forward_pre_hooks:
-        return block(x)
-    if not inference_ready(x, *modules):
-        return _block_forward(block, convs, x)
-    identity = x if ds is None else conv_bn_act(x, ds[0], ds[1], ready=True)
-    out = x
-    for conv, bn in convs[:-1]:
-        out = conv_bn_act(out, conv, bn, "relu", ready=True)
-    return conv_bn_act(out, *convs[-1], "relu", residual=identity, into_residual=ds is not None or owns_input,
-                       ready=True)
-
-
-def _block_forward(block: nn.Module, convs: tuple, x: Tensor) -> Tensor:
-    """The block's own forward (torchvision's ``Bottleneck``/``BasicBlock``: each conv, BN, ReLU, the residual sum,
-    ReLU), with each convolution through :func:`omnidl.nn.unfold_conv.module_conv2d`, which runs the weight-heavy
-    ones (ResNet-50's ``layer4`` on a ``4x8`` map: 512 to 2048 channels for 32 positions) as one matrix product
-    on the weight where it lies; the result is the same."""
-    out = x
-    for k, (conv, bn) in enumerate(convs):
-        out = bn(module_conv2d(conv, out))
-        if k < len(convs) - 1:
-            out = block.relu(out)
-    ds = block.downsample
-    identity = x if ds is None else ds[1](module_conv2d(ds[0], x))
-    return block.relu(out + identity)

@@ -26,27 +26,26 @@ Same compute as the public model: 100.5 GFLOP (conv/matmul) at 512x256 with ResN
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from omnidl.nn.ffc import FourierBlock
-from omnidl.nn import batch_norm, tap_projection, upsample2x
-from omnidl.nn.capture import capturing
-from omnidl.nn import fusion
-from omnidl.nn.fusion import RowMap, UpsampleSum, blocked_conv, can_block, rows_per_block, upsample_sum
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
+from omnidl.nn import convert_conv2d
 from omnidl.nn.conv_switch import conv_choice
-from omnidl.nn.padding import CircularConv2d
+from omnidl.nn.ffc import FourierBlock
 from omnidl.nn.wconv import ConvNormAct, WConv
 
 from ._backbone import ResNetFeatures
-from ._memory_format import ChannelsLast, MemoryFormatPolicy, check_policy
+from ._checks import check_image
+from ._memory_format import MemoryFormat
 from .registry import register_model
+
+torch.fx.wrap("check_image")
 
 #: widths of the public model (ResNet-50, width 1)
 ENCODER_WIDTHS = (256, 512, 1024, 2048)
@@ -71,11 +70,9 @@ class EncoderBlock(nn.Module):
         self.downscale = downscale
         self.conv = WConv(channels, out_channels, dropout=dropout, **wconv_kwargs)
 
-    def forward(self, x: Tensor, overwrite: bool = False) -> tuple[Tensor, Tensor]:
-        """``overwrite``: the caller no longer needs ``x`` (see :meth:`FourierBlock.forward`)."""
-        f = self.fourier(x, overwrite=overwrite)
-        # bilinear x0.5 with align_corners=False on even sizes == 2x2 average pooling
-        y = F.avg_pool2d(f, 2) if self.downscale else f
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        f = self.fourier(x)
+        y = F.interpolate(f, scale_factor=0.5, mode="bilinear", align_corners=False) if self.downscale else f
         return f, self.conv(y)
 
 
@@ -91,20 +88,14 @@ class DecoderBlock(nn.Module):
         self.fourier = FourierBlock(channels, **fb_kwargs)
 
     def forward(self, x: Tensor, skip: Tensor | None = None) -> Tensor:
-        y = self.conv(x)
         if self.skip_weight is not None and skip is None:
             raise ValueError("DecoderBlock built with a skip connection needs a skip tensor")
-        if self.upscale and upsample2x.applies(y, skip, self.skip_weight):
-            # up(y) + w * skip in one native pass each way (omnidl.nn.upsample2x)
-            return self.fourier(upsample2x.up2_add(y, skip, self.skip_weight), overwrite=True)
+        y = self.conv(x)
         if self.upscale:
             y = F.interpolate(y, scale_factor=2.0, mode="bilinear", align_corners=False)
         if self.skip_weight is not None:
-            if torch.is_grad_enabled() or capturing():
-                y = y + self.skip_weight * skip
-            else:       # y is this block's own new buffer: the weighted skip added in place, no two more full maps
-                y = y.addcmul_(self.skip_weight, skip)
-        return self.fourier(y, overwrite=True)       # y is this block's own map
+            y = y + self.skip_weight * skip
+        return self.fourier(y)
 
 
 class FusionHead(nn.Module):
@@ -125,62 +116,16 @@ class FusionHead(nn.Module):
                                padding="circular", camera=out_camera)
 
     def forward(self, maps: Sequence[Tensor]) -> Tensor:
-        B, _, H, W = maps[-1].shape
-        if torch.compiler.is_compiling():           # torch.export / torch.compile: the row blocks slice by a
-            ups = [F.interpolate(med(d), size=(H, W), mode="bilinear", align_corners=True)   # data-dependent
-                   for med, d in zip(self.mediators, maps)]                                   # range: plain sum
-            return self.out(ups[0] + sum(w * u for w, u in zip(self.branch_weights.unbind(), ups[1:])))
-        weights = [None] + list(self.branch_weights.unbind())
-        if tap_projection.pays(self.out.conv):
-            # few output channels (depth): project each map onto the output conv's taps first, so that the
-            # up-sampling and the sum run on Cout*9 channels (omnidl.nn.tap_projection)
-            taps = [self._taps(med, d) for med, d in zip(self.mediators, maps)]
-            y = tap_projection.shift_sum(self.out.conv, upsample_sum(taps, weights, (H, W)))
-            return self.out.act(self.out.norm(y))
-        blocked = can_block(self.out.conv)          # not for a distortion-aware output conv
-        if not blocked or torch.is_grad_enabled():
-            # blocks pay off without autograd; with it every full-size buffer is kept anyway, and the backward
-            # of each block's row slices would write full-size gradient buffers: the whole sum at once
-            ups = [med(d) for med, d in zip(self.mediators, maps)]
-            conv = self.out.conv
-            wrap = conv.channels_last_wrap(ups[-1]) if isinstance(conv, CircularConv2d) else 0
-            if wrap:                                    # a thin output conv: the sum written wrapped, channels-last
-                return self.out.act(self.out.norm(conv.conv_wrapped(upsample_sum(ups, weights, (H, W), wrap=wrap))))
-            return self.out(upsample_sum(ups, weights, (H, W)))
-        mediated = [self._mediated(med, d, (H, W), first=i == 0)
-                    for i, (med, d) in enumerate(zip(self.mediators, maps))]
-        fused = UpsampleSum(mediated, weights, size=(H, W))      # sum_i w_i up(m_i), by row blocks
-        y = blocked_conv(self.out.conv, fused.rows, H, rows_per_block(B, self.out.conv.in_channels, W))
-        return self.out.act(self.out.norm(y))
-
-    def _mediated(self, mediator: WConv, d: Tensor, size: tuple[int, int], first: bool) -> Tensor | Callable | RowMap:
-        """``mediator(d)`` for :class:`UpsampleSum`; in eval mode as rows computed per block (``WConv.row_source``)
-        where the map is full-size or larger than two blocks (the first map stays a tensor: it sets the sum's
-        layout). At 1024x512 the semantic branch's half-size map is 128 x 256 x 512, 64 MB: as one buffer it took
-        55-85 ms in its last 1x1 stage, most of it page faults (glibc maps such a buffer afresh on each call)."""
-        if self.training:
-            return mediator(d)
-        h, w = d.shape[-2:]
-        if (h, w) == size:
-            return mediator.row_source(d)
-        nbytes = d.shape[0] * mediator.expand.conv.out_channels * h * w * d.element_size()
-        if first or nbytes <= 2 * fusion.BLOCK_BYTES:
-            return mediator(d)
-        return RowMap(mediator.row_source(d), h, w)
-
-    def _taps(self, mediator: WConv, d: Tensor) -> Tensor:
-        """``project(out.conv, mediator(d))``; in eval mode without autograd by row blocks, so that the wide
-        mediator output of a large map never exists at once."""
-        conv = self.out.conv
-        if self.training or torch.is_grad_enabled():
-            return tap_projection.project(conv, mediator(d))
-        rows = mediator.row_source(d)
-        B, _, H, W = d.shape
-        block = rows_per_block(B, conv.in_channels, W)
-        return torch.cat([tap_projection.project(conv, rows(a, min(H, a + block))) for a in range(0, H, block)], 2)
+        size = (maps[-1].shape[-2], maps[-1].shape[-1])
+        ups = [F.interpolate(med(d), size=size, mode="bilinear", align_corners=True)
+               for med, d in zip(self.mediators, maps)]
+        fused = ups[0]
+        for i, u in enumerate(ups[1:]):
+            fused = fused + self.branch_weights[i] * u
+        return self.out(fused)
 
 
-class FreDSNet(MemoryFormatPolicy, nn.Module):
+class FreDSNet(MemoryFormat, nn.Module):
     """FreDSNet (see the module docstring). ``forward(image (B,3,H,W) in [0,1])`` returns
     ``{"depth": (B,1,H,W) >= 0 metres, "semantic": (B,num_classes,H,W) logits}``.
 
@@ -206,10 +151,8 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
         outputs: which heads to build/run (``("depth", "semantic")``, or one of them).
         depth_bias_init: initial bias (metres) of the depth output conv, so that the final ReLU starts
             active on most pixels (a dead ReLU output never learns); the public code uses the default init.
-        channels_last: run the network in ``torch.channels_last`` memory format (weights and activations;
-            outputs are returned contiguous): ``True``, ``False`` or ``"auto"`` (default: channels-last in eval
-            mode, NCHW in training, where convolutions train faster on CPU, see
-            :mod:`omnidl.models._memory_format`). Results are the same up to float rounding.
+        channels_last: run the network in ``torch.channels_last`` memory format (weights and activations; outputs
+            are returned contiguous), see :mod:`omnidl.models._memory_format`. Results equal up to float rounding.
     """
 
     stride = 32
@@ -220,7 +163,7 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
                  encoder_dropout: float = 0.4, head_width: int = HEAD_WIDTH, fft_norm: str = "backward",
                  spectrum_layout: str = "width", semantic_bn_relu: bool = False,
                  outputs: Sequence[str] = ("depth", "semantic"), depth_bias_init: float = 1.0,
-                 channels_last: ChannelsLast = "auto") -> None:
+                 channels_last: bool = False) -> None:
         super().__init__()
         conv = conv_choice(conv, "FreDSNet")
         if not width > 0:
@@ -238,7 +181,6 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
 
         self.backbone = ResNetFeatures(backbone, pretrained=pretrained)
         if "backbone" in parts:
-            from omnidl.nn import convert_conv2d
             convert_conv2d(self.backbone.body, camera=cam)
 
         enc = [_scaled(c, width) for c in ENCODER_WIDTHS]
@@ -268,29 +210,21 @@ class FreDSNet(MemoryFormatPolicy, nn.Module):
                                         out_camera=hc["camera"]) if "semantic" in outputs else None
         if self.depth_head is not None:
             nn.init.constant_(self.depth_head.out.conv.bias, float(depth_bias_init))
-        self.channels_last = check_policy(channels_last, "FreDSNet")
-        self.apply_memory_format()
-        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
+        self.set_memory_format(channels_last, "FreDSNet")
 
     def check_input(self, x: Tensor) -> None:
         """Raise a ``ValueError`` unless ``x`` is ``(B, 3, H, W)`` with ``H, W`` multiples of 32."""
-        if x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"FreDSNet expects images of shape (B, 3, H, W), got {tuple(x.shape)}")
-        h, w = x.shape[-2:]
-        if h % self.stride or w % self.stride:
-            raise ValueError(f"FreDSNet: input size {h}x{w} (HxW) is not divisible by the network stride "
-                             f"{self.stride}; resize to e.g. {max(1, round(h / self.stride)) * self.stride}x"
-                             f"{max(1, round(w / self.stride)) * self.stride}")
+        check_image(x, "FreDSNet", self.stride)
 
     def decode_features(self, x: Tensor) -> list[Tensor]:
         """The six decoder maps ``[d1 (1/32), d2 (1/16), d3 (1/8), d4 (1/4), d5 (1/2), d6 (1/1)]``."""
-        self.check_input(x)
+        check_image(x, "FreDSNet", self.stride)
         x = self.to_model_format(x)
         feats = [lat(f) for lat, f in zip(self.lateral, self.backbone(x))]
         skips = []
         flow = feats[0]
         for i, block in enumerate(self.encoder):
-            f, flow = block(flow, overwrite=True)   # flow: a backbone output or this loop's own sum, not needed again
+            f, flow = block(flow)
             skips.append(f)
             if i < 3:
                 flow = flow + feats[i + 1]

@@ -36,15 +36,17 @@ from torch import Tensor
 
 from omnidl.cameras import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
-from omnidl.nn import batch_norm
+from omnidl.nn import convert_conv2d
 from omnidl.nn.conv_switch import conv_choice
-from omnidl.nn.inference import conv_bn_act, inference_ready
 
 from ._backbone import ResNetFeatures
-from ._memory_format import ChannelsLast, MemoryFormatPolicy, check_policy
+from ._checks import check_image
+from ._memory_format import MemoryFormat
 from .registry import register_model
 
 DECODER_WIDTHS = (512, 256, 128, 64, 64)
+
+torch.fx.wrap("check_image")
 
 
 class _ConvAct(nn.Sequential):
@@ -74,26 +76,7 @@ def _up(x: Tensor) -> Tensor:
     return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
 
 
-def _cat_wrap(parts: list[Tensor], pad: int, channels_last: bool) -> Tensor:
-    """``F.pad(torch.cat(parts, 1), (pad, pad, 0, 0), mode="circular")`` written once into one buffer in the
-    parts' layout: ``parts`` ``(B, C_i, H, W)`` -> ``(B, sum C_i, H, W + 2 pad)`` (same values; the separate
-    cat and pad cost two full copies and, in channels-last, a layout conversion before the next conv)."""
-    B, _, H, W = parts[0].shape
-    C = sum(t.shape[1] for t in parts)
-    fmt = torch.channels_last if channels_last else torch.contiguous_format
-    out = torch.empty(B, C, H, W + 2 * pad, dtype=parts[0].dtype, device=parts[0].device, memory_format=fmt)
-    c = 0
-    for t in parts:
-        n = t.shape[1]
-        out[:, c:c + n, :, pad:pad + W].copy_(t)
-        if pad:
-            out[:, c:c + n, :, :pad].copy_(t[..., W - pad:])
-            out[:, c:c + n, :, pad + W:].copy_(t[..., :pad])
-        c += n
-    return out
-
-
-class HoLiNet(MemoryFormatPolicy, nn.Module):
+class HoLiNet(MemoryFormat, nn.Module):
     """Horizon / vanishing-point heat-map network.
 
     Args:
@@ -104,13 +87,11 @@ class HoLiNet(MemoryFormatPolicy, nn.Module):
             deprecated aliases (:mod:`omnidl.nn.conv_switch`).
         camera: camera of the input image for ``conv="projected"`` (``Camera`` or config; default full equirect).
         channels_last: run in ``torch.channels_last`` memory format (weights and activations; outputs are
-            returned contiguous): ``True``, ``False`` or ``"auto"`` (default: channels-last in eval mode, NCHW
-            in training, where convolutions train as fast or faster, :mod:`omnidl.models._memory_format`).
-            Results equal up to float rounding.
+            returned contiguous; :mod:`omnidl.models._memory_format`). Results equal up to float rounding.
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, width: float = 1.0,
-                 conv: str = "projected", camera: Any = None, channels_last: ChannelsLast = "auto") -> None:
+                 conv: str = "projected", camera: Any = None, channels_last: bool = False) -> None:
         super().__init__()
         conv = self.conv = conv_choice(conv, "HoLiNet")
         if width <= 0:
@@ -129,51 +110,24 @@ class HoLiNet(MemoryFormatPolicy, nn.Module):
         self.dec2 = _ConvAct(d3 + c0 + 2, d4, 5, True, circ)
         self.out2 = _ConvAct(d4, 2, 3, False, circ)
         if conv == "projected":
-            from omnidl.nn import convert_conv2d
             convert_conv2d(self, camera=resolve_camera(camera, default=Equirectangular(width=256, height=128),
                                                        allow_files=False))
-        self.channels_last = check_policy(channels_last, "HoLiNet")
-        self.apply_memory_format()
-        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
-        # decoder inputs of conv="standard": concatenation and longitude wrap written into one buffer
-        # (:func:`_cat_wrap`); False = the modules' own torch.cat + F.pad (the reference, same values)
-        self.fuse_wrap = True
-
-    def _block(self, block: _ConvAct, parts: list[Tensor]) -> Tensor:
-        """``block(torch.cat(parts, 1))``, with the wrap of a circular block fused into the concatenation and, in
-        inference, the convolution and its ReLU in one call (:func:`omnidl.nn.inference.conv_bn_act`)."""
-        layers = list(block)
-        if isinstance(layers[0], _HorizontalWrap) and self.fuse_wrap:
-            x = _cat_wrap(parts, layers.pop(0).pad, self.uses_channels_last)
-        else:
-            x = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
-            if isinstance(layers[0], _HorizontalWrap):
-                x = layers.pop(0)(x)
-        conv = layers[0]
-        if inference_ready(x, conv):
-            return conv_bn_act(x, conv, None, "relu" if len(layers) > 1 else None, ready=True)
-        for m in layers:
-            x = m(x)
-        return x
+        self.set_memory_format(channels_last, "HoLiNet")
 
     def forward(self, image: Tensor) -> dict[str, Tensor]:
         """``image (B, 3, H, W)`` RGB in ``[0, 1]`` -> dict of logits (see the module docstring)."""
-        if image.ndim != 4 or image.shape[1] != 3:
-            raise ValueError(f"HoLiNet expects (B, 3, H, W) RGB images, got shape {tuple(image.shape)}")
-        if image.shape[-1] % 32 or image.shape[-2] % 32:
-            raise ValueError(f"HoLiNet: input sides must be multiples of 32, got {tuple(image.shape[-2:])}")
+        check_image(image, "HoLiNet", 32)
         image = self.to_model_format(image)
         f0, f1, f2, f3, f4 = self.encoder(image)
-        blk = self._block
-        x = _up(blk(self.dec32, [f4]))
-        x16 = blk(self.dec16, [x, f3])
-        a16 = blk(self.out16, [x16])
-        x8 = blk(self.dec8, [_up(x16), f2, _up(a16)])
-        a8 = blk(self.out8, [x8])
-        x4 = blk(self.dec4, [_up(x8), f1, _up(a8)])
-        a4 = blk(self.out4, [x4])
-        x2 = blk(self.dec2, [_up(x4), f0, _up(a4)])
-        out = blk(self.out2, [x2])
+        x = _up(self.dec32(f4))
+        x16 = self.dec16(torch.cat([x, f3], 1))
+        a16 = self.out16(x16)
+        x8 = self.dec8(torch.cat([_up(x16), f2, _up(a16)], 1))
+        a8 = self.out8(x8)
+        x4 = self.dec4(torch.cat([_up(x8), f1, _up(a8)], 1))
+        a4 = self.out4(x4)
+        x2 = self.dec2(torch.cat([_up(x4), f0, _up(a4)], 1))
+        out = self.out2(x2)
         out, a16, a8, a4 = (t.contiguous() for t in (out, a16, a8, a4))
         return {"horizon": out[:, :1], "vp": out[:, 1:], "aux_16": a16, "aux_8": a8, "aux_4": a4}
 

@@ -10,7 +10,7 @@
   thesis §5.3.1: every column is locally central).
 * ``corner``: logits of a wall-wall corner at each column.
 
-Architecture (as the reference, ``../shared/reference/layout.md`` §1.1): ResNet levels 1-4 ->
+Architecture (as the reference, ``docs/design.md#horizonnet-architecture``): ResNet levels 1-4 ->
 per level four height-compressing ``3x3`` convs (stride ``(2, 1)``, BN, ReLU; channels ``c -> c/2 ->
 c/2 -> c/4 -> c/8``) with horizontal wrap-around padding -> each tower's height adaptively pooled to
 ``(8, 4, 2, 1)`` rows (exactly the reference's heights at 512 rows, so any input height works and
@@ -24,6 +24,7 @@ Any ``H, W`` divisible by 32 (and ``W`` by ``step_cols``) works, e.g. 1024x512, 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 from typing import Any, Mapping
@@ -33,16 +34,18 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from omnidl.nn import batch_norm
-from omnidl.nn.inference import conv_bn_act, inference_ready
-from omnidl.nn.lstm import lstm_forward
-from omnidl.nn.padding import CircularConv2d
+from omnidl.nn.padding import CircularConv2d, pad_panorama
 
 from ._backbone import ResNetFeatures
-from ._memory_format import ChannelsLast, MemoryFormatPolicy, check_policy
+from ._checks import check_image
+from ._memory_format import MemoryFormat
 from .registry import register_model
 
 log = logging.getLogger(__name__)
+
+torch.fx.wrap("check_image")
+torch.fx.wrap("pad_panorama")
+torch.fx.wrap("resample_columns")
 
 #: tower output heights (reference heights at 512 rows)
 TOWER_HEIGHTS = (8, 4, 2, 1)
@@ -52,19 +55,17 @@ BIAS_INIT = (-0.478, 0.425, -1.0)
 
 class CompressHeight(nn.Module):
     """``3x3`` conv, stride ``(2, 1)``, horizontal wrap padding (:class:`~omnidl.nn.padding.CircularConv2d`; zeros
-    with ``circular=False``), BN, ReLU: halves the height. One :func:`~omnidl.nn.inference.conv_bn_act` call in
-    inference."""
+    with ``circular=False``), BN, ReLU: halves the height."""
 
     def __init__(self, cin: int, cout: int, circular: bool = True) -> None:
         super().__init__()
         self.circular = circular
         self.conv = (CircularConv2d if circular else nn.Conv2d)(cin, cout, 3, stride=(2, 1), padding=1)
         self.bn = nn.BatchNorm2d(cout)
+        self.act = nn.ReLU(inplace=True)
 
     def forward(self, x: Tensor) -> Tensor:
-        if inference_ready(x, self.conv, self.bn):
-            return conv_bn_act(x, self.conv, self.bn, "relu", ready=True)
-        return F.relu(self.bn(self.conv(x)), inplace=True)
+        return self.act(self.bn(self.conv(x)))
 
 
 class HeightTower(nn.Sequential):
@@ -86,7 +87,7 @@ def resample_columns(x: Tensor, out_w: int) -> Tensor:
     return y[..., factor:factor + out_w]
 
 
-class HorizonNet(MemoryFormatPolicy, nn.Module):
+class HorizonNet(MemoryFormat, nn.Module):
     """HorizonNet / non-central HorizonNet (see module docstring).
 
     Args:
@@ -101,14 +102,13 @@ class HorizonNet(MemoryFormatPolicy, nn.Module):
             recorded (``self.camera``): the network is per-column, geometry lives in targets and
             post-processing.
         dropout: dropout of the LSTM/head (0.5).
-        channels_last: memory format of the convolutional part: ``True``, ``False`` or ``"auto"`` (default:
-            channels-last in eval mode, NCHW in training; :mod:`omnidl.models._memory_format`). Results equal up
-            to float rounding.
+        channels_last: memory format of the convolutional part (:mod:`omnidl.models._memory_format`). Results equal
+            up to float rounding.
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, rnn: bool = True, hidden: int = 512,
                  step_cols: int = 4, out_scale: int = 8, circular: bool = True, camera: Any = "equirect",
-                 dropout: float = 0.5, channels_last: ChannelsLast = "auto") -> None:
+                 dropout: float = 0.5, channels_last: bool = False) -> None:
         super().__init__()
         self.encoder = ResNetFeatures(backbone, pretrained=pretrained, out_indices=(1, 2, 3, 4))
         if circular:
@@ -133,17 +133,12 @@ class HorizonNet(MemoryFormatPolicy, nn.Module):
             for k, v in enumerate(BIAS_INIT):
                 last.bias[k * self.step_cols:(k + 1) * self.step_cols] = v
         self.camera = camera if not hasattr(camera, "to_config") else camera.to_config()
-        self.channels_last = check_policy(channels_last, "HorizonNet")
-        self.apply_memory_format()
-        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
+        self.set_memory_format(channels_last, "HorizonNet")
 
     def features(self, x: Tensor) -> Tensor:
         """``(B, 3, H, W) -> (B, feat_dim, W / step_cols)`` column features."""
-        B, _, H, W = x.shape
-        r = self.encoder.reduction
-        if H % r or W % r or W % self.step_cols:
-            raise ValueError(f"HorizonNet: input {H}x{W} must have H and W divisible by {r} and W by step_cols="
-                             f"{self.step_cols}")
+        check_image(x, "HorizonNet", math.lcm(self.encoder.reduction, self.step_cols))
+        B, W = x.shape[0], x.shape[-1]
         out_w = W // self.step_cols
         x = self.to_model_format(x)
         cols = []
@@ -158,7 +153,7 @@ class HorizonNet(MemoryFormatPolicy, nn.Module):
         B, _, S = feat.shape
         if self.use_rnn:
             seq = feat.permute(2, 0, 1)                           # (S, B, C)
-            out, _ = lstm_forward(self.rnn, seq)                  # native batch-1 recurrence in inference
+            out, _ = self.rnn(seq)
             out = self.head(self.drop(out))                       # (S, B, 3*step)
             out = out.permute(1, 0, 2)                            # (B, S, 3*step)
         else:
@@ -168,24 +163,14 @@ class HorizonNet(MemoryFormatPolicy, nn.Module):
 
 
 class CircularMaxPool2d(nn.Module):
-    """ResNet's ``3x3`` stride-2 max-pool with horizontal wrap-around (vertical border: ``-inf``).
-
-    Without autograd, on an even width, the map is pooled with ``-inf`` padding on every side and only output
-    column 0, the one whose window holds the wrapped column ``W-1``, is corrected (no padded copy of the map)."""
+    """ResNet's ``3x3`` stride-2 max-pool with horizontal wrap-around (vertical border: ``-inf``)."""
 
     def forward(self, x: Tensor) -> Tensor:
-        if torch.is_grad_enabled() or x.shape[-1] % 2 or x.shape[-1] < 2:
-            x = torch.cat([x[..., -1:], x, x[..., :1]], -1)
-            return F.max_pool2d(x, 3, 2, padding=(1, 0))
-        y = F.max_pool2d(x, 3, 2, padding=1)
-        last = F.max_pool2d(x[..., -1:], (3, 1), (2, 1), padding=(1, 0))        # (B, C, Ho, 1)
-        y[..., :1] = torch.maximum(y[..., :1], last)
-        return y
+        return F.max_pool2d(pad_panorama(x, 1), 3, 2, padding=(1, 0))
 
 
 def _wrap_convs(module: nn.Module) -> None:
     """Swap every ``nn.Conv2d`` with horizontal padding for a wrap-around one (same keys and weights)."""
-    from ..nn.padding import CircularConv2d
     for name, child in list(module.named_children()):
         if type(child) is nn.Conv2d and child.padding != (0, 0) and isinstance(child.padding, tuple) \
                 and child.padding[1] > 0:

@@ -25,14 +25,17 @@ from torch import Tensor, nn
 
 from omnidl.cameras.base import Camera
 from omnidl.cameras.resolve import check_image_size, resolve_camera
-from omnidl.nn import batch_norm
+from omnidl.nn import ProjectedConv2d, convert_conv2d
 from omnidl.nn.conv_switch import conv_choice
-from omnidl.nn.inference import conv_bn_act, inference_ready
 
+from ._checks import check_image
 from ._weights import load_weights
 from .registry import register_model
 
 TASKS = ("depth", "semantic")
+
+torch.fx.wrap("check_image")
+torch.fx.wrap("check_image_size")
 
 
 class DoubleConv(nn.Sequential):
@@ -41,12 +44,6 @@ class DoubleConv(nn.Sequential):
     def __init__(self, cin: int, cout: int) -> None:
         super().__init__(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
                          nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
-
-    def forward(self, x: Tensor) -> Tensor:
-        """In inference each conv-BN-ReLU is one :func:`omnidl.nn.inference.conv_bn_act` call (BatchNorm folded)."""
-        if not inference_ready(x, self[0], self[1], self[3], self[4]):
-            return super().forward(x)
-        return conv_bn_act(conv_bn_act(x, self[0], self[1], "relu", ready=True), self[3], self[4], "relu", ready=True)
 
 
 class Up(nn.Module):
@@ -102,7 +99,6 @@ class UNet(nn.Module):
             self.heads["semantic"] = nn.Conv2d(ch[0], num_classes, 1)
         if pretrained:
             self.load_pretrained(pretrained, strict=pretrained_strict)
-        batch_norm.convert(self)        # batch norm's training forward on NCHW maps natively (omnidl.nn.batch_norm)
         self.conv = "standard"
         self.camera: Camera | None = None
         if conv == "projected":
@@ -117,8 +113,6 @@ class UNet(nn.Module):
 
     def calibrate(self, camera: Any, **conv_kwargs: Any) -> "UNet":
         """Turn every 3×3 convolution into a calibrated one for ``camera`` (in place; weights kept)."""
-        from omnidl.nn import convert_conv2d
-        from omnidl.nn.projected_conv import ProjectedConv2d
         cam = resolve_camera(camera, default=None)
         if cam is None:
             raise ValueError("unet: conv='projected' needs the camera of the input images (model.camera: a camera "
@@ -132,7 +126,6 @@ class UNet(nn.Module):
 
     def standardize(self) -> "UNet":
         """Back to standard convolutions (the layers keep their type; without a camera they are ``nn.Conv2d``)."""
-        from omnidl.nn.projected_conv import ProjectedConv2d
         for m in self.modules():
             if isinstance(m, ProjectedConv2d):
                 m.camera = None
@@ -140,8 +133,7 @@ class UNet(nn.Module):
         return self
 
     def forward(self, image: Tensor) -> dict[str, Tensor]:
-        if image.dim() != 4 or image.shape[1] != 3:
-            raise ValueError(f"unet: expected an image batch (B, 3, H, W), got {tuple(image.shape)}")
+        check_image(image, "unet")
         if self.camera is not None:
             check_image_size(image.shape[-2:], self.camera, "unet input")
         x = self.inc(image)

@@ -45,10 +45,7 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from . import batch_norm, epilogue, inference, thin_layout, winograd
-from .capture import capturing
 from .padding import PaddingMode, make_conv2d
-from .unfold_conv import module_conv2d
 from .wconv import Activation, make_activation
 
 FFTNorm = Literal["backward", "ortho", "forward"]
@@ -83,22 +80,21 @@ class FourierUnit(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         b, c, h, w = x.shape
-        dtype = x.dtype
-        xf = x.float() if dtype in (torch.float16, torch.bfloat16) else x
+        xf = x.to(torch.promote_types(x.dtype, torch.float32))            # half-precision FFTs: powers of 2 only
         spec = torch.fft.rfft2(xf, norm=self.fft_norm)                     # (B, C, H, Wf)
         wf = spec.shape[-1]
         if self.spectrum_layout == "width":
             z = torch.cat([spec.real, spec.imag], dim=-1)                  # (B, C, H, 2Wf)
         else:
             z = torch.stack([spec.real, spec.imag], dim=2).reshape(b, 2 * c, h, wf)
-        z = _norm_act(module_conv2d(self.conv, z), self.norm, self.act, z).to(xf.dtype)
+        z = self.act(self.norm(self.conv(z))).to(xf.dtype)
         if self.spectrum_layout == "width":
             spec = torch.complex(z[..., :wf], z[..., wf:])
         else:
             z = z.reshape(b, -1, 2, h, wf)
             spec = torch.complex(z[:, :, 0], z[:, :, 1])
         y = torch.fft.irfft2(spec, s=(h, w), norm=self.fft_norm)
-        return y.to(dtype)
+        return y.to(x.dtype)
 
 
 class SpectralTransform(nn.Module):
@@ -126,26 +122,17 @@ class SpectralTransform(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         conv, norm, act = self.conv_in
         x = self.downsample(x)
-        x = _norm_act(module_conv2d(conv, x), norm, act, x)
-        f = self.fourier(x)
-        if torch.is_grad_enabled() or capturing():
-            return module_conv2d(self.conv_out, x + f)
-        return module_conv2d(self.conv_out, f.add_(x))      # the Fourier unit's output is its own new map
+        x = act(norm(conv(x)))
+        return self.conv_out(x + self.fourier(x))
 
 
-def _norm_act(y: Tensor, norm: nn.Module, act: nn.Module, x: Tensor) -> Tensor:
-    """``act(norm(y))`` for ``y``, a convolution's output on ``x``; without autograd written over ``y`` in one native
-    pass where it applies (:mod:`omnidl.nn.epilogue`: the BatchNorm folded into a scale and shift), instead of two
-    new maps."""
-    bn = norm if isinstance(norm, nn.BatchNorm2d) else None
-    if (bn is not None or type(norm) is nn.Identity) and epilogue.over_output(y, x, act, bn) is not None:
-        return y
-    return batch_norm.norm_act(y, norm, act)             # in training: one native batch norm pass
+def check_channels(x: Tensor, channels: int) -> None:
+    """Raise a ``ValueError`` unless ``x`` has ``channels`` channels."""
+    if x.shape[1] != channels:
+        raise ValueError(f"FFC expects {channels} input channels, got shape {tuple(x.shape)}")
 
 
-#: ``False``: the spatial paths of an FFC in inference run as in training, through ``module_conv2d`` (benchmarks'
-#: in-process A/B of :meth:`FFC._forward_packed`)
-PACKED_INFERENCE = True
+torch.fx.wrap("check_channels")   # torch.fx.symbolic_trace records the check as one call
 
 
 def split_channels(channels: int, ratio_global: float) -> tuple[int, int]:
@@ -204,57 +191,16 @@ class FFC(nn.Module):
         """``(B, C, H, W)`` → ``(x_local, x_global)`` (``None`` for an empty part); tuples pass through."""
         if isinstance(x, (tuple, list)):
             return x[0], x[1]
-        if x.shape[1] != self.in_cl + self.in_cg:
-            raise ValueError(f"FFC expects {self.in_cl + self.in_cg} input channels, got shape {tuple(x.shape)}")
+        check_channels(x, self.in_cl + self.in_cg)
         return (x[:, :self.in_cl] if self.in_cl else None), (x[:, self.in_cl:] if self.in_cg else None)
 
     def forward(self, x: Tensor | tuple[Tensor | None, Tensor | None]) -> tuple[Tensor | None, Tensor | None]:
         x_l, x_g = self.split(x)
-        if self._packed_inference(x_l, x_g):
-            return self._forward_packed(x_l, x_g)
-        y_l = _add(module_conv2d(self.conv_l2l, x_l) if self.conv_l2l is not None else None,
-                   module_conv2d(self.conv_g2l, x_g) if self.conv_g2l is not None else None)
-        y_g = _add(module_conv2d(self.conv_l2g, x_l) if self.conv_l2g is not None else None,
-                   module_conv2d(self.conv_g2g, x_g) if self.conv_g2g is not None else None)
+        y_l = _add(self.conv_l2l(x_l) if self.conv_l2l is not None else None,
+                   self.conv_g2l(x_g) if self.conv_g2l is not None else None)
+        y_g = _add(self.conv_l2g(x_l) if self.conv_l2g is not None else None,
+                   self.conv_g2g(x_g) if self.conv_g2g is not None else None)
         return y_l, y_g
-
-    def _packed_inference(self, x_l: Tensor | None, x_g: Tensor | None) -> bool:
-        """Whether the three spatial paths run as inference layers with kept weights (:meth:`_forward_packed`): all
-        present, outside autograd (:func:`omnidl.nn.inference.inference_ready`), each one qualifying on its input
-        once in channels-last memory (:func:`_packed_layer`)."""
-        convs = (self.conv_l2l, self.conv_g2l, self.conv_l2g)
-        if (not PACKED_INFERENCE or x_l is None or x_g is None or any(c is None for c in convs)
-                or not inference.inference_ready(x_l, *convs)):
-            return False
-        return all(_packed_layer(x, c) for x, c in ((x_l, self.conv_l2l), (x_g, self.conv_g2l), (x_l, self.conv_l2g)))
-
-    def _forward_packed(self, x_l: Tensor, x_g: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`forward` by :func:`omnidl.nn.inference.conv_bn_act` (where :meth:`_packed_inference`): both parts
-        copied into channels-last memory once, ``g2l(x_g)`` accumulated into ``l2l(x_l)`` in place, both outputs in
-        NCHW memory unless the input's channels are innermost. Each layer runs the native Winograd kernel where it
-        qualifies, else oneDNN with the weight re-laid out once and kept. Before (stop 37), ``F.conv2d`` re-laid out
-        each weight on every call: a 1024-channel 3x3 layer on 16x32 (FreDSNet at 1024x512) took 91 against 53 ms,
-        and its 38 MB re-laid weight, larger than glibc's mapping threshold, page-faulted afresh on every call; 512
-        channels on 16x32 took 22 against 12 ms (2 threads)."""
-        xl, xg = thin_layout.to_nhwc(x_l), thin_layout.to_nhwc(x_g)
-        y_l = inference.conv_bn_act(xl, self.conv_l2l, ready=True)
-        y_l = inference.conv_bn_act(xg, self.conv_g2l, residual=y_l, into_residual=True, ready=True)
-        l2g = inference.conv_bn_act(xl, self.conv_l2g, ready=True)
-        if x_l.stride(1) != 1:                       # NCHW input (a channel slice of it, too): NCHW outputs
-            y_l, l2g = thin_layout.to_nchw(y_l), thin_layout.to_nchw(l2g)
-        g2g = module_conv2d(self.conv_g2g, x_g) if self.conv_g2g is not None else None
-        return y_l, (l2g if g2g is None else l2g.add_(g2g))
-
-
-def _packed_layer(x: Tensor, conv: nn.Module) -> bool:
-    """Whether :meth:`FFC._forward_packed` takes ``conv`` on ``x``: a layer the native Winograd kernel takes
-    (:func:`omnidl.nn.winograd.wrap_mode`), or one oneDNN runs as it is (:func:`omnidl.nn.inference.packable`) with
-    :data:`omnidl.nn.winograd.MIN_CHANNELS` or more channels each way (8 channels on 512x1024 ran 1.24x slower
-    packed)."""
-    if winograd.wrap_mode(x, conv, any_layout=True) is not None:
-        return True
-    return (inference.packable(conv) and min(conv.in_channels, conv.out_channels) >= winograd.MIN_CHANNELS
-            and x.dtype == torch.float32 and x.device.type == "cpu")
 
 
 def _add(a: Tensor | None, b: Tensor | None) -> Tensor | None:
@@ -283,29 +229,12 @@ class FourierBlock(nn.Module):
         self.act_g = make_activation(activation, cg) if cg else None
         self.residual = residual
 
-    def forward(self, x: Tensor, overwrite: bool = False) -> Tensor:
-        """``x (B, C, H, W) -> (B, C, H, W)``. ``overwrite``: the caller no longer needs ``x``; without autograd the
-        output is then written over it (``x`` itself is returned)."""
+    def forward(self, x: Tensor) -> Tensor:
         x_l, x_g = self.ffc.split(x)
         y_l, y_g = self.ffc((x_l, x_g))
-        if y_l is not None and y_g is not None and self.residual and not torch.is_grad_enabled() and not capturing():
-            # without autograd each part's sum is written straight into its channels of the output: no concatenated
-            # copy (at 1024x512 FreDSNet's blocks on 128x256 and larger give 32 MB outputs, which glibc maps and
-            # page-faults afresh for every buffer: 13 ms for a BatchNorm's 32 MB output against 0.9 ms for 16 MB);
-            # over x itself where the caller allows it and both parts were computed into buffers of their own
-            own = (overwrite and type(x) is torch.Tensor and not inference.same_storage(y_l, x)
-                   and not inference.same_storage(y_g, x))
-            out = x if own else torch.empty_like(x)
-            cl = self.ffc.out_cl
-            for y, res, norm, act, part in ((y_l, x_l, self.norm_l, self.act_l, out[:, :cl]),
-                                            (y_g, x_g, self.norm_g, self.act_g, out[:, cl:])):
-                # BatchNorm, activation and residual in one native pass where it applies (omnidl.nn.epilogue)
-                if epilogue.affine_act(y, act, norm, res, part) is None:
-                    torch.add(act(norm(y)), res, out=part)
-            return out
         parts = []
         for y, res, norm, act in ((y_l, x_l, self.norm_l, self.act_l), (y_g, x_g, self.norm_g, self.act_g)):
             if y is not None:
-                y = batch_norm.norm_act(y, norm, act)            # in training: one native batch norm pass
+                y = act(norm(y))
                 parts.append(y + res if self.residual else y)
         return torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]

@@ -21,9 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import thin_layout, winograd_train
-from .capture import capturing
-from .unfold_conv import conv2d
+from .projected_conv import ProjectedConv2d
 
 PaddingMode = Literal["zeros", "circular"]
 VerticalMode = Literal["zeros", "replicate", "reflect"]
@@ -49,10 +47,8 @@ def pad_panorama(x: Tensor, pad_w: int | tuple[int, int], pad_h: int | tuple[int
     if left > w or right > w:
         raise ValueError(f"pad_panorama: horizontal padding ({left}, {right}) larger than the width {w}")
     if left or right:
-        if x.requires_grad and torch.is_grad_enabled() and not capturing():
-            x = _WrapColumns.apply(x, left, right)
-        else:
-            x = _wrap_columns(x, left, right)
+        x = torch.cat([p for p in (x[..., w - left:] if left else None, x, x[..., :right] if right else None)
+                       if p is not None], dim=-1)
     if top or bottom:
         if vertical == "zeros":
             x = F.pad(x, (0, 0, top, bottom))
@@ -63,31 +59,7 @@ def pad_panorama(x: Tensor, pad_w: int | tuple[int, int], pad_h: int | tuple[int
     return x
 
 
-def _cat_w(*parts: Tensor | None) -> Tensor:
-    """Concatenate the non-``None`` parts along the last (width) axis."""
-    return torch.cat([p for p in parts if p is not None], dim=-1)
-
-
-def _wrap_columns(x: Tensor, left: int, right: int) -> Tensor:
-    """``x (..., W)`` -> ``(..., left + W + right)``: the last ``left`` columns, ``x``, the first ``right`` ones."""
-    w = x.shape[-1]
-    return _cat_w(x[..., w - left:] if left else None, x, x[..., :right] if right else None)
-
-
-class _WrapColumns(torch.autograd.Function):
-    """:func:`_wrap_columns` with a backward of its own: the gradient of ``x`` is written once, the middle columns
-    copied and the two wrapped strips added onto the columns they came from. (Autograd's own backward of the
-    concatenation gives each strip a zero-filled buffer of the size of ``x`` and adds the three: on FreDSNet's
-    full-resolution 128-channel maps that is two more 16.8 MB buffers and three passes over them.)"""
-
-    @staticmethod
-    def forward(ctx, x: Tensor, left: int, right: int) -> Tensor:   # type: ignore[override]
-        ctx.left, ctx.right = left, right
-        return _wrap_columns(x, left, right)
-
-    @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor, None, None]:   # type: ignore[override]
-        return thin_layout.unwrap(g, ctx.left, ctx.right), None, None
+torch.fx.wrap("pad_panorama")   # torch.fx.symbolic_trace records it as one call (it checks the width)
 
 
 class PanoramaPad2d(nn.Module):
@@ -129,83 +101,12 @@ class CircularConv2d(nn.Conv2d):
         self.wrap_padding = (padding, padding) if isinstance(padding, int) else tuple(padding)
 
     def _conv_forward(self, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-        """The convolution with the given ``weight``/``bias`` (``nn.Conv2d.forward`` calls this with its own;
-        :class:`omnidl.nn.wconv.ConvNormAct` with BatchNorm folded in)."""
         ph, pw = self.wrap_padding
-        path = self._path(x, weight)
-        if path == "strips":
-            return wrapped_conv2d(x, weight, bias, (ph, pw), self.dilation, self.groups)
-        if path == "winograd":
-            return winograd_train.conv2d(x, weight, bias, wrap=1)          # a 3x3 layer in training, wrapped
-        if path == "channels-last":                                      # a thin head: wrapped into channels-last
-            return self._conv_wrapped(thin_layout.to_channels_last(x, pw, pw), weight, bias)
-        if pw:
-            x = pad_panorama(x, pw)
-        return conv2d(x, weight, bias, self.stride, (ph, 0), self.dilation, self.groups)
-
-    def _path(self, x: Tensor, weight: Tensor) -> str:
-        """How :meth:`_conv_forward` convolves ``x``: ``"strips"`` (no autograd, a large map: zero padding, then the
-        border columns again from a thin wrapped strip), ``"winograd"`` (a 3x3 layer in training), ``"channels-last"``
-        (a thin head in training: on a wrapped channels-last copy) or ``"padded"`` (on a wrapped copy)."""
-        ph, pw = self.wrap_padding
-        if (pw and self.stride == (1, 1) and 2 * pw == self.dilation[1] * (self.kernel_size[1] - 1)
-                and x.shape[-1] >= 4 * pw and x.numel() >= BORDER_FIX_NUMEL and not torch.is_grad_enabled()):
-            return "strips"
-        if (pw, ph) == (1, 1) and winograd_train.applies(x, weight, self.stride, 1, self.dilation, self.groups):
-            return "winograd"
-        if pw and pw <= x.shape[-1] and thin_layout.pays(x, weight):
-            return "channels-last"
-        return "padded"
-
-    def channels_last_wrap(self, x: Tensor) -> int:
-        """The columns on each side by which this convolution wraps ``x`` into channels-last memory (its thin-head
-        path), or 0 where it takes another path. A caller that computes ``x`` itself can write it that way at once
-        (e.g. :func:`omnidl.nn.fusion.upsample_sum` with ``wrap``) and call :meth:`conv_wrapped`."""
-        return self.wrap_padding[1] if self._path(x, self.weight) == "channels-last" else 0
-
-    def conv_wrapped(self, xp: Tensor) -> Tensor:
-        """The convolution of a map given already wrapped: ``xp (B, C, H, pw + W + pw)`` channels-last, with ``pw``
-        from :meth:`channels_last_wrap` -> ``(B, Cout, Ho, Wo)`` contiguous, equal to ``self(x)``."""
-        return self._conv_wrapped(xp, self.weight, self.bias)
-
-    def _conv_wrapped(self, xp: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-        ph = self.wrap_padding[0]
-        return F.conv2d(xp, weight, bias, self.stride, (ph, 0), self.dilation, self.groups).contiguous()
+        return F.conv2d(pad_panorama(x, pw) if pw else x, weight, bias, self.stride, (ph, 0), self.dilation,
+                        self.groups)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", wrap_padding={self.wrap_padding} (horizontal wrap)"
-
-
-#: inputs with at least this many elements skip the wrapped copy of the whole map when no gradient is recorded
-#: (see :func:`wrapped_conv2d`; with autograd the copy is cheaper: the strips' backward writes full-size buffers)
-BORDER_FIX_NUMEL = 1 << 20
-
-
-def wrapped_conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, padding: tuple[int, int],
-                  dilation: tuple[int, int], groups: int) -> Tensor:
-    """Stride-1 "same" convolution with a horizontal wrap (``pw`` columns) and ``ph`` zero rows, without
-    copying ``x`` into a padded buffer (``x`` at least ``4 pw`` columns wide).
-
-    The convolution runs zero-padded (no copy: oneDNN pads internally); then only the ``pw`` border
-    columns on each side, the ones that should have seen the other side of the panorama, are recomputed
-    from one thin wrapped strip (columns ``W-2pw .. W-1`` then ``0 .. 2pw-1``) and written over. Same
-    result as padding first; on large maps this saves a full copy (and its page faults) per convolution.
-    """
-    ph, pw = padding
-    return border_strip_conv(x, pw, lambda t, p: F.conv2d(t, weight, bias, 1, (ph, p), dilation, groups))
-
-
-def border_strip_conv(x: Tensor, pw: int, conv: Callable[[Tensor, int], Tensor]) -> Tensor:
-    """``conv(x, pw)`` (the map convolved with ``pw`` zero columns on each side, no copy) with its ``pw`` border
-    columns on each side replaced by ``conv(strip, 0)`` of the wrapped strip of columns ``W-2pw .. W-1, 0 .. 2pw-1``:
-    a horizontally wrapping convolution whose kernel spans ``2 pw + 1`` columns at width stride 1 (``x`` at least
-    ``4 pw`` columns wide). ``conv(t, p)`` convolves ``t`` with ``p`` zero columns each side; it is called on the strip
-    second (its output: the right border's columns, then the left border's)."""
-    y = conv(x, pw)
-    s = conv(torch.cat([x[..., -2 * pw:], x[..., :2 * pw]], dim=-1), 0)
-    y[..., :pw] = s[..., pw:]
-    y[..., -pw:] = s[..., :pw]
-    return y
 
 
 def make_conv2d(in_channels: int, out_channels: int, kernel_size: int = 3, *, stride: int = 1,
@@ -233,7 +134,6 @@ def make_conv2d(in_channels: int, out_channels: int, kernel_size: int = 3, *, st
             return conv_layer(in_channels, out_channels, kernel_size, camera=camera, **kw)
         return conv_layer(in_channels, out_channels, kernel_size, **kw)
     if camera is not None:
-        from omnidl.nn.projected_conv import ProjectedConv2d
         return ProjectedConv2d(in_channels, out_channels, kernel_size, camera=camera, **kw)
     if padding == "circular":
         return CircularConv2d(in_channels, out_channels, kernel_size, **kw)

@@ -11,25 +11,18 @@ from __future__ import annotations
 
 from typing import Any, Callable, Literal
 
-import torch
 import torch.nn as nn
-import torch.nn.functional as F
 from torch import Tensor
 
-from . import batch_norm, epilogue, expansion
-from .inference import conv_bn_act, fold_batchnorm, inference_ready
 from .padding import PaddingMode, make_conv2d
-from .prelu import PReLU
-from .unfold_conv import module_conv2d
 
 Activation = Literal["prelu", "relu", "none"]
 
 
 def make_activation(name: Activation, channels: int) -> nn.Module:
-    """``"prelu"`` (one slope per channel, as FreDSNet; :class:`omnidl.nn.prelu.PReLU`, whose backward is one
-    pass), ``"relu"`` or ``"none"`` (identity)."""
+    """``"prelu"`` (``nn.PReLU`` with one slope per channel, as FreDSNet), ``"relu"`` or ``"none"`` (identity)."""
     if name == "prelu":
-        return PReLU(channels)
+        return nn.PReLU(channels)
     if name == "relu":
         return nn.ReLU(inplace=False)
     if name in ("none", None):
@@ -50,44 +43,7 @@ class ConvNormAct(nn.Module):
         self.act = make_activation(activation, out_channels)
 
     def forward(self, x: Tensor) -> Tensor:
-        bn = self.norm if isinstance(self.norm, nn.BatchNorm2d) else None
-        if inference_ready(x, self.conv, bn):   # eval without autograd: folded, kept, one oneDNN call when it can
-            relu = type(self.act) is nn.ReLU
-            y = conv_bn_act(x, self.conv, bn, "relu" if relu else None, ready=True)
-            # y is this call's own new map: the activation written over it (omnidl.nn.epilogue), no second map
-            return y if relu or epilogue.over_output(y, x, self.act) is not None else self.act(y)
-        if expansion.applies(x, self.conv, self.norm, self.act):   # a thin 1x1 expansion in training: fused
-            return expansion.expansion(x, self.conv, self.norm, self.act, ready=True)
-        folded = self._folded_params(x)
-        if folded is None:
-            y = module_conv2d(self.conv, x)
-            out = batch_norm.with_activation(y, self.norm, self.act)    # in training: one native batch norm pass
-            if out is not None:
-                return out
-            y = self.norm(y)
-        else:
-            y = self.conv._conv_forward(x, *folded)
-        if type(self.act) is nn.ReLU:
-            return F.relu_(y)          # y is a fresh conv/BN output that no backward needs: no extra buffer
-        return self.act(y)
-
-    def _folded_params(self, x: Tensor) -> tuple[Tensor, Tensor] | None:
-        """In eval mode, the convolution's weight and bias with the BatchNorm folded in, when that is cheaper
-        than normalising the output (weights smaller than the output map); ``None`` otherwise.
-
-        ``conv(x, w * s, (b - mean) * s + beta)`` with ``s = gamma / sqrt(var + eps)`` equals
-        ``BN(conv(x, w, b))`` with running statistics; it is recomputed from the live parameters on every
-        call (differentiable, never stale) and saves one pass and one buffer of the size of the output. (Without
-        autograd, :func:`omnidl.nn.inference.conv_bn_act` keeps the folded weights between calls instead.)
-        """
-        conv, bn = self.conv, self.norm
-        if (self.training or not isinstance(bn, nn.BatchNorm2d) or bn.running_var is None
-                or not isinstance(conv, nn.Conv2d) or conv.padding_mode != "zeros"):
-            return None
-        out_numel = x.numel() // max(1, x.shape[1]) * conv.out_channels // (conv.stride[0] * conv.stride[1])
-        if conv.weight.numel() > out_numel:
-            return None
-        return fold_batchnorm(conv.weight, conv.bias, bn)
+        return self.act(self.norm(self.conv(x)))
 
 
 class WConv(nn.Module):
@@ -119,15 +75,3 @@ class WConv(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         return self.expand(self.drop2(self.conv(self.drop1(self.reduce(x)))))
-
-    def row_source(self, x: Tensor) -> Callable[[int, int], Tensor]:
-        """Eval mode only: ``f(a, b)`` = ``self(x)[:, :, a:b]``, with the wide last 1x1 stage computed per call.
-
-        Everything up to the bottleneck runs once (``hidden`` channels); the expansion to ``out_channels``
-        is pointwise, so rows can be produced block by block (see :mod:`omnidl.nn.fusion`) and the
-        full-width output never exists at once. In training mode BatchNorm needs the whole batch.
-        """
-        if self.training:
-            raise RuntimeError("WConv.row_source needs eval mode (BatchNorm statistics of the whole map otherwise)")
-        hidden = self.drop2(self.conv(self.drop1(self.reduce(x))))
-        return lambda a, b: self.expand(hidden[:, :, a:b])

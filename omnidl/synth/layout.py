@@ -21,7 +21,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import native_layout
 from .raycast import CEILING, FLOOR, WALL, _walls_2d, cast_room
 from .scene import Scene
 
@@ -169,8 +168,6 @@ def _brackets(kind_map: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per column of ``kind_map (H, W)`` (CPU): the first row ``i_c`` with CEILING above WALL below, the last row
     ``i_f`` with WALL above FLOOR below (int64 ``(W,)``; 0 and ``H - 2`` where there is none) and whether each
     exists."""
-    if native_layout.applies(kind_map):
-        return native_layout.brackets(kind_map)
     k = kind_map.to(torch.int8)              # classes 0..3: the same comparisons on 8x less memory
     ceil_t = (k[:-1] == CEILING) & (k[1:] == WALL)
     floor_t = (k[:-1] == WALL) & (k[1:] == FLOOR)
@@ -223,8 +220,6 @@ def column_boundaries(scene: Scene, camera, pose: np.ndarray, kind_map: Tensor,
 def _edge_map(kind_map: Tensor, wall_map: Tensor, wraps: bool) -> Tensor:
     """``(H, W)`` float 1 on wall-wall (vertical) edges and, for cameras that do not wrap (no single boundary per
     column), on every vertical class change; the ceiling/floor boundary pixels are added by the caller."""
-    if native_layout.applies(kind_map, wall_map):
-        return native_layout.edges(kind_map, wall_map, wraps)
     H, W = kind_map.shape
     walls = kind_map == WALL
     key = kind_map * 64 + torch.where(walls, wall_map.clamp_min(0), 0)

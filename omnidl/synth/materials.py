@@ -1,15 +1,14 @@
-"""Surface materials: colour pools and cheap procedural textures evaluated per hit point (torch).
+"""Surface materials: colour pools and cheap procedural textures.
 
 A material is ``(colour1 (3,), colour2 (3,), texture, scale, emissive)``; textures are functions of
-2D surface coordinates and an integer hash (no image look-ups), so they cost a few vectorised ops.
+2D surface coordinates and an integer hash (no image look-ups), evaluated per hit point by the renderer's
+shading op (:func:`omnidl.ops.surface_shade.texture_mix`).
 """
 from __future__ import annotations
 
 import numpy as np
-import torch
-from torch import Tensor
 
-PLAIN, STRIPES, CHECKER, NOISE, PLANKS, PANEL = range(6)
+from omnidl.ops.surface_shade import CHECKER, NOISE, PANEL, PLAIN, PLANKS, STRIPES  # noqa: F401 - texture kinds
 
 # colour pools (linear-ish RGB in [0, 1])
 WALL_COLOURS = [(0.92, 0.90, 0.85), (0.85, 0.82, 0.74), (0.80, 0.84, 0.86), (0.78, 0.85, 0.76),
@@ -102,59 +101,3 @@ def fabric_material(rng, table: MaterialTable) -> int:
 
 def clutter_material(rng, table: MaterialTable) -> int:
     return table.add(jitter(rng, pick(rng, CLUTTER_COLOURS), 0.1))
-
-
-def _hash(i: Tensor, j: Tensor) -> Tensor:
-    """Deterministic pseudo-random value in ``[0, 1)`` per integer lattice cell (int64 tensors)."""
-    h = (i * 73856093) ^ (j * 19349663)
-    h = (h ^ (h >> 13)) * 1274126177
-    return torch.remainder(h, 1021).to(torch.float32) / 1021.0
-
-
-def _hash_table(i: Tensor, j: Tensor) -> Tensor:
-    """:func:`_hash` of many points through a table over the box of their ``(i, j)`` cells when that box is
-    small (textures repeat few cells over many pixels): the same values, a gather instead of 9 int64 ops."""
-    if i.numel() < 4096:
-        return _hash(i, j)
-    i0, i1, j0, j1 = int(i.min()), int(i.max()), int(j.min()), int(j.max())
-    ni, nj = i1 - i0 + 1, j1 - j0 + 1
-    if ni * nj > i.numel() // 8:
-        return _hash(i, j)
-    ci = torch.arange(i0, i1 + 1, device=i.device)[:, None].expand(ni, nj).reshape(-1)
-    cj = torch.arange(j0, j1 + 1, device=i.device)[None].expand(ni, nj).reshape(-1)
-    return _hash(ci, cj).index_select(0, (i - i0) * nj + (j - j0))
-
-
-def texture_mix(texture: Tensor, scale: Tensor, su: Tensor, sv: Tensor, kinds: list[int] | None = None) -> Tensor:
-    """Blend weight in ``[0, 1]`` between colour1 (0) and colour2 (1) per point.
-
-    ``texture``, ``scale``: per point material fields ``(P,)``; ``su``, ``sv``: surface coordinates
-    in metres (horizontal along the surface, and vertical / second axis; ``[0, 1]`` box coordinates
-    for ``PANEL``). Each texture kind is evaluated only on its own points.
-    """
-    w = torch.zeros_like(su)
-    for kind in (torch.unique(texture).tolist() if kinds is None else kinds):
-        if kind == PLAIN:
-            continue
-        idx = (texture == kind).nonzero()[:, 0]
-        u, v, s = su.index_select(0, idx), sv.index_select(0, idx), scale.index_select(0, idx).clamp_min(1e-3)
-        if kind == PANEL:
-            val = ((u < 0.08) | (u > 0.92) | (v < 0.06) | (v > 0.94) | ((v > 0.48) & (v < 0.52))).to(su.dtype)
-        else:
-            iu = torch.floor(u / s).to(torch.int64)
-            iv = torch.floor(v / s).to(torch.int64)
-            if kind == STRIPES:
-                val = torch.remainder(iu, 2).to(su.dtype)
-            elif kind == CHECKER:
-                val = torch.remainder(iu + iv, 2).to(su.dtype)
-            elif kind == NOISE:
-                val = _hash_table(iu, iv).to(su.dtype)
-            else:  # PLANKS: rows of staggered planks 4 x scale long with dark seams
-                off = _hash_table(iv, iv + 7).to(su.dtype) * 4 * s
-                x = (u + off) / (4 * s)
-                col = torch.floor(x)
-                seam = (v / s - iv.to(su.dtype) < 0.05) | (x - col < 0.012)
-                val = 0.6 * _hash_table(iv, col.to(torch.int64)).to(su.dtype)
-                val = torch.where(seam, torch.ones_like(val), val)
-        w.index_copy_(0, idx, val)
-    return w

@@ -1,6 +1,6 @@
 """Camera poses in a scene: free random position and height, gravity-aligned or tilted.
 
-Pose convention (DESIGN.md): ``X_world = R X_cam + t``; an upright camera maps camera ``-y`` to
+Pose convention (``docs/design.md#conventions``): ``X_world = R X_cam + t``; an upright camera maps camera ``-y`` to
 world ``+z``; at yaw 0 camera ``x`` -> world ``+x`` and camera ``z`` (forward) -> world ``+y``
 (:data:`omnidl.geometry.rotations.UPRIGHT_TO_WORLD`). Rotations come from :mod:`omnidl.geometry.rotations`
 (torch, float64) and are turned into numpy here, at the call site.

@@ -15,9 +15,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from . import native_cast
+from omnidl.ops.surface_shade import CEILING, FLOOR, WALL  # the room hit's kinds, as the shading op reads them
 
-CEILING, WALL, FLOOR = 1, 2, 3
 _EPS = 1e-6
 
 
@@ -243,9 +242,6 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
             rays.append(everyone)
         else:
             rays.append(cand_all[gi].nonzero()[:, 0])
-    if native_cast.applies(origin, direction, boxes, t_best):
-        native_cast.box_slabs(origin, direction, boxes, groups, rays, t_best, box_id)   # the loop below, in C
-        return t_best, box_id
     frames = _box_frames(origin, boxes) if central else None                 # (10, 1, B)
     inv_z = _safe_inverse(direction[:, 2:])                                  # (P, 1)
     for g, idx in zip(groups, rays):
@@ -264,26 +260,3 @@ def cast_boxes(origin: Tensor, direction: Tensor, boxes: Tensor, groups: list[Te
         t_best.index_copy_(0, sel, tg.index_select(0, closer))
         box_id.index_copy_(0, sel, g.to(box_id.device).index_select(0, kg.index_select(0, closer)))
     return t_best, box_id
-
-
-def box_normals(points: Tensor, boxes: Tensor, box_id: Tensor) -> tuple[Tensor, Tensor]:
-    """Outward world normals ``(K, 3)`` of box hits and local surface coordinates ``(K, 2)``.
-
-    ``points (K, 3)`` lie on the boxes ``box_id (K,)`` (rows of ``boxes``).
-    """
-    b = boxes.index_select(0, box_id)
-    c, s = torch.cos(b[:, 6]), torch.sin(b[:, 6])
-    px, py = points[:, 0] - b[:, 0], points[:, 1] - b[:, 1]
-    local = torch.stack([c * px + s * py, -s * px + c * py, points[:, 2] - b[:, 2]], -1)
-    ratio = local.abs() / b[:, 3:6].clamp_min(1e-9)
-    axis = ratio.argmax(-1)
-    sign = torch.sign(local.gather(1, axis[:, None])[:, 0])
-    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-    n_local = torch.zeros_like(local)
-    n_local.scatter_(1, axis[:, None], sign[:, None])
-    normal = torch.stack([c * n_local[:, 0] - s * n_local[:, 1], s * n_local[:, 0] + c * n_local[:, 1],
-                          n_local[:, 2]], -1)
-    # texture coordinates on the face: the two local axes other than the normal axis
-    uv = torch.where((axis == 2)[:, None], local[:, :2],
-                     torch.where((axis == 0)[:, None], local[:, 1:], local[:, 0::2]))
-    return normal, uv

@@ -12,12 +12,11 @@ from torch import Tensor
 
 from omnidl.classes import CLASS_ID
 from omnidl.geometry.rotations import upright_rotation
+from omnidl.ops.surface_shade import PANEL, SurfaceTables, surface_shade
 from omnidl.utils.threads import limit_threads
 
-from . import materials as M
 from .layout import layout_ground_truth
-from . import native_cast, native_shade
-from .raycast import FLOOR, WALL, box_normals, cast_boxes, cast_room, column_rays, group_spheres
+from .raycast import cast_boxes, cast_room, column_rays, group_spheres
 from .scene import Scene
 from .tiles import ray_tiles, tile_batches, tile_mask
 
@@ -141,17 +140,13 @@ def _render(scene: Scene, camera, pose: np.ndarray, layout: bool, dtype: torch.d
     t = torch.where(hit, t, torch.zeros_like(t))
     # component-major (3, P) from here on: 3-vector products are several times faster than on (P, 3)
     # rows and give the same bits (the same operations in the same order on each element). Contiguous rows
-    # also for non-central rays (o_t is then a transposed view): the BLAS sums the shading's products over a
-    # transposed operand in another order, and native_shade sums them as over contiguous rows
+    # also for non-central rays (o_t is then a transposed view): a BLAS sums the shading's products over a
+    # transposed operand in another order
     point = torch.addcmul(o_t, t[None], d_t).contiguous()                      # (3, P)
     R = torch.as_tensor(pose[:3, :3], dtype=dtype, device=device)
-    if not shadows and native_shade.applies(point, d_t):
-        # one native pass per pixel: the same labels, surfaces and texture cells as _surfaces
-        tables = _native_tables(scene, boxes)
-        image, sem, inst, normal_cam = native_shade.surface_shade(point, d_t, hit, box_id, room.kind, room.wall,
-                                                                  room.s, tables, R)
-    else:
-        image, sem, inst, normal_cam = _surfaces(scene, room, box_id, hit, point, d_t, boxes, groups, R, shadows)
+    shadow = _shadows(scene, point, hit, boxes, groups) if shadows and len(scene.boxes) else None
+    image, sem, inst, normal_cam = surface_shade(point, d_t, hit, box_id, room.kind, room.wall, room.s,
+                                                 *_shading_tables(scene, boxes), R, shadow)
 
     out = {
         "image": image.reshape(3, H, W).to(torch.float32),
@@ -181,122 +176,38 @@ def _render(scene: Scene, camera, pose: np.ndarray, layout: bool, dtype: torch.d
     return out
 
 
-def _surfaces(scene: Scene, room, box_id: Tensor, hit: Tensor, point: Tensor, d_t: Tensor, boxes: Tensor, groups,
-              R: Tensor, shadows: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The surface pass on tensor ops: ``image (3, P)``, ``semantic``, ``instance (P,)`` (0 without a hit) and the
-    camera-frame normal ``(3, P)`` from the room hit ``room``, the box hits ``box_id (P,)`` (-1: none), ``hit (P,)``
-    and the component-major hit points and ray directions ``(3, P)`` (``native_shade`` is the same pass in C)."""
-    dtype, device = point.dtype, point.device
-    n, n_dec = scene.num_walls, len(scene.decals)
-    is_box = box_id >= 0
-    # surface id per pixel
-    is_wall = room.kind == WALL
-    surf = torch.where(is_wall, room.wall, torch.where(room.kind == FLOOR, n, n + 1))
-    tex_u = torch.where(is_wall, room.s, point[0])
-    tex_v = torch.where(is_wall, point[2], point[1])
-    on_wall = is_wall & ~is_box
-    if n_dec:
-        widx = on_wall.nonzero()[:, 0]
-        # index_select / index_copy_: the same gathers and scatters as x[idx], several times faster
-        w_wall, w_s, w_z = room.wall.index_select(0, widx), room.s.index_select(0, widx), point[2].index_select(0, widx)
-        w_surf = surf.index_select(0, widx)
-        w_u, w_v = tex_u.index_select(0, widx), tex_v.index_select(0, widx)
-        for k, row in enumerate(scene.decals):
-            wl, s0, s1, z0, z1 = row[:5]
-            m = (w_wall == int(wl)) & (w_s >= s0) & (w_s <= s1) & (w_z >= z0) & (w_z <= z1)
-            w_surf = torch.where(m, n + 2 + k, w_surf)
-            if scene.materials["texture"][scene.decal_material[k]] == M.PANEL:
-                w_u = torch.where(m, (w_s - s0) / (s1 - s0), w_u)
-                w_v = torch.where(m, (w_z - z0) / (z1 - z0), w_v)
-        surf.index_copy_(0, widx, w_surf)
-        tex_u.index_copy_(0, widx, w_u)
-        tex_v.index_copy_(0, widx, w_v)
+def _shading_tables(scene: Scene, boxes: Tensor) -> SurfaceTables:
+    """The scene's operands of :func:`omnidl.ops.surface_shade.surface_shade` in the dtype and on the device of
+    ``boxes (B, 9)`` (the scene's box rows); the openings' extents are differences taken in float64."""
+    dtype, device = boxes.dtype, boxes.device
     sem_t, inst_t, mat_t, nrm_t = _surface_tables(scene, dtype, device)
-    normal = nrm_t.T.index_select(1, surf)                                    # (3, P)
-    bidx = is_box.nonzero()[:, 0]
-    if bidx.numel():
-        bi = box_id.index_select(0, bidx)
-        nb, uvb = box_normals(point.index_select(1, bidx).T, boxes, bi)
-        normal.index_copy_(1, bidx, nb.T)
-        surf.index_copy_(0, bidx, n + 2 + n_dec + bi)
-        tex_u.index_copy_(0, bidx, uvb[:, 0])
-        tex_v.index_copy_(0, bidx, uvb[:, 1])
-    sem, inst = sem_t.index_select(0, surf), inst_t.index_select(0, surf)
-    # normals face the ray
-    flip = normal[0] * d_t[0] + normal[1] * d_t[1] + normal[2] * d_t[2] > 0
-    normal = torch.where(flip[None], -normal, normal)
-    normal = normal * hit[None]
-
-    image = _shade(scene, mat_t, surf, tex_u, tex_v, point, normal, hit, dtype, device, boxes, groups, shadows)
-
-    normal_cam = R.T @ normal                      # R^T n
-    sem = sem * hit
-    inst = inst * hit
-    return image, sem, inst, normal_cam
-
-
-def _native_tables(scene: Scene, boxes: Tensor) -> native_shade.SurfaceTables:
-    """The scene's tables for :func:`native_shade.surface_shade`, float32 as :func:`_surfaces` casts them."""
-    f32 = torch.float32
-    sem_t, inst_t, mat_t, nrm_t = _surface_tables(scene, f32, None)
     dec = np.asarray(scene.decals, np.float64).reshape(-1, 7)                  # [wall, s0, s1, z0, z1, ...]
     openings = np.stack([dec[:, 1], dec[:, 2], dec[:, 3], dec[:, 4], dec[:, 2] - dec[:, 1], dec[:, 4] - dec[:, 3]], 1)
     m = scene.materials
-    panel = np.asarray(m["texture"])[np.asarray(scene.decal_material, np.int64)] == M.PANEL
-    return native_shade.SurfaceTables(
-        n_walls=int(scene.num_walls), openings=torch.as_tensor(openings, dtype=f32),
-        opening_wall=torch.as_tensor(dec[:, 0]).to(torch.int64), opening_panel=torch.as_tensor(panel, dtype=torch.bool),
-        boxes=native_cast.box_table(boxes),
+    panel = np.asarray(m["texture"])[np.asarray(scene.decal_material, np.int64)] == PANEL
+    yaw = boxes[:, 6]
+    as_t = lambda x, dt=dtype: torch.as_tensor(x, dtype=dt, device=device)  # noqa: E731
+    return SurfaceTables(
+        n_walls=int(scene.num_walls), openings=as_t(openings), opening_wall=as_t(dec[:, 0]).to(torch.int64),
+        opening_panel=as_t(panel, torch.bool),
+        boxes=torch.cat([boxes[:, :6], torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]], 1),
         semantic=sem_t, instance=inst_t, material=mat_t, normal=nrm_t.contiguous(),
-        colour=torch.as_tensor(np.concatenate([m["c1"], m["c2"]], 1), dtype=f32),
-        texture=torch.as_tensor(m["texture"], dtype=torch.int64), scale=torch.as_tensor(m["scale"]).to(f32),
-        emissive=torch.as_tensor(m["emissive"], dtype=torch.bool), lights=torch.as_tensor(scene.lights, dtype=f32),
-        ambient=float(scene.ambient))
+        colour=as_t(np.concatenate([m["c1"], m["c2"]], 1)), texture=as_t(m["texture"], torch.int64),
+        scale=as_t(m["scale"], torch.float64).to(dtype), emissive=as_t(m["emissive"], torch.bool),
+        lights=as_t(scene.lights), ambient=float(scene.ambient))
 
 
-def _shade(scene: Scene, mat_t: Tensor, surf: Tensor, tu: Tensor, tv: Tensor, point: Tensor, normal: Tensor,
-           hit: Tensor, dtype, device, boxes: Tensor, groups, shadows: bool) -> Tensor:
-    """Lambertian shading ``(3, P)``: albedo (procedural texture) x (ambient + point lights).
-
-    ``mat_t (S,)``: material per surface, ``surf (P,)``: surface per pixel; ``point``, ``normal``: ``(3, P)``.
-    The material fields are looked up per surface first, then gathered per pixel once.
-    """
-    m = scene.materials
-    colours = torch.as_tensor(np.concatenate([m["c1"], m["c2"]], 1).T, dtype=dtype, device=device)   # (6, M)
-    c12 = colours.index_select(1, mat_t).index_select(1, surf)                  # (6, P)
-    c1, c2 = c12[:3], c12[3:]
-    kinds = sorted(set(np.asarray(m["texture"]).tolist()))
-    texture = torch.as_tensor(m["texture"], device=device)[mat_t].index_select(0, surf)
-    scale = torch.as_tensor(m["scale"], device=device).to(dtype)[mat_t].index_select(0, surf)
-    w = M.texture_mix(texture, scale, tu, tv, kinds)[None]
-    albedo = c1 * (1 - w) + c2 * w
-    everything = bool(hit.all())
-    hits = slice(None) if everything else hit.nonzero()[:, 0]
-    p, n = point[:, hits], normal[:, hits]
-    lights = torch.as_tensor(scene.lights, dtype=dtype, device=device)             # (L, 4)
-    lp, power = lights[:, :3], lights[:, 3]
-    # all lights at once: n.(l - p) and |l - p|^2 from (L, P) products
-    n_dot_l = lp @ n - (n[0] * p[0] + n[1] * p[1] + n[2] * p[2])[None]
-    dist2 = ((p[0] * p[0] + p[1] * p[1] + p[2] * p[2])[None] - lp @ (2 * p) + (lp * lp).sum(-1)[:, None])
-    dist2 = dist2.clamp_min(1e-12)
-    lam = (n_dot_l * dist2.rsqrt()).clamp_min(0.0)
-    contrib = power[:, None] * lam / (1.0 + 0.25 * dist2)                          # (L, P)
-    if shadows and len(scene.boxes):
-        p_rows = p.T.contiguous()
-        for j in range(len(lp)):
-            v = lp[j] - p_rows
-            dist = v.norm(dim=-1).clamp_min(1e-6)
-            contrib[j] *= _shadow(p_rows, lp[j], v, dist, boxes, groups)
-    light = scene.ambient + contrib.sum(0)
-    light = 1.25 * light / (1.0 + 0.25 * light)      # soft highlight roll-off
-    emissive = torch.as_tensor(m["emissive"], device=device)[mat_t].index_select(0, surf if everything else surf[hits])
-    a = albedo[:, hits]
-    shaded = torch.where(emissive[None], a, a * light[None]).clamp_(0.0, 1.0)
-    if everything:
-        return shaded
-    colour = torch.zeros_like(albedo)
-    colour[:, hits] = shaded
-    return colour
+def _shadows(scene: Scene, point: Tensor, hit: Tensor, boxes: Tensor, groups) -> Tensor:
+    """``(L, P)`` light factors of the hit points ``point (3, P)``: :func:`_shadow` of each light (1 without a hit)."""
+    lp = torch.as_tensor(scene.lights, dtype=point.dtype, device=point.device)[:, :3]
+    hits = hit.nonzero()[:, 0]
+    p_rows = point.index_select(1, hits).T.contiguous()
+    out = torch.ones(len(lp), point.shape[1], dtype=point.dtype, device=point.device)
+    for j in range(len(lp)):
+        v = lp[j] - p_rows
+        dist = v.norm(dim=-1).clamp_min(1e-6)
+        out[j].index_copy_(0, hits, _shadow(p_rows, lp[j], v, dist, boxes, groups))
+    return out
 
 
 def _shadow(p: Tensor, lp: Tensor, v: Tensor, dist: Tensor, boxes: Tensor, groups) -> Tensor:

@@ -1,96 +1,195 @@
-"""Contract tests run automatically on every registered model (timm-style)."""
+"""The model contract (docs/extending.md, "Models: the contract"), run on every registered model in each of its
+convolution modes (``conv="standard"`` and ``conv="projected"`` where the model has the switch).
+
+One network in every mode: train, eval with grad and eval under ``torch.no_grad()`` run the same modules (forward
+hooks see every one); a swapped norm takes effect in all three; ``torch.fx.symbolic_trace``, ``torch.compile(...,
+fullgraph=True)`` and ``torch.export`` (tests/models/test_export.py) take the model as it is.
+"""
+from __future__ import annotations
+
 import pytest
 import torch
+from torch import nn
 
 from omnidl.models import create_model, list_models
 from omnidl.models.registry import smoke_config
 
 
-@pytest.mark.parametrize("name", list_models())
-def test_forward_backward_every_parameter_gets_gradient(name):
-    torch.manual_seed(0)
+def _has_conv_switch(name: str) -> bool:
+    try:
+        create_model(name, **dict(smoke_config(name)["kwargs"], conv="standard"))
+    except TypeError as e:
+        if "conv" in str(e):
+            return False
+        raise
+    return True
+
+
+VARIANTS = [(name, conv) for name in list_models()
+            for conv in (("standard", "projected") if _has_conv_switch(name) else (None,))]
+IDS = [name if conv is None else f"{name}-{conv}" for name, conv in VARIANTS]
+
+
+def build(name: str, conv: str | None, seed: int = 0) -> tuple[nn.Module, torch.Tensor]:
+    """The smoke configuration of ``name`` in ``conv`` mode (projected: an equirectangular camera of the input
+    size) and a batch of two inputs."""
     cfg = smoke_config(name)
-    model = create_model(name, **cfg["kwargs"])
-    model.train()
+    kwargs = dict(cfg["kwargs"])
     h, w = cfg["size"]
-    x = torch.rand(2, 3, h, w)
+    if conv is not None:
+        kwargs["conv"] = conv
+    if conv == "projected":
+        kwargs["camera"] = {"type": "equirect", "width": w, "height": h}
+    torch.manual_seed(seed)
+    model = create_model(name, **kwargs)
+    x = torch.rand(2, 3, h, w, generator=torch.Generator().manual_seed(seed + 1))
+    return model, x
+
+
+def floats(out: dict) -> dict[str, torch.Tensor]:
+    return {k: v for k, v in out.items() if isinstance(v, torch.Tensor) and v.is_floating_point()}
+
+
+def assert_outputs_close(a: dict, b: dict, what: str, atol: float = 1e-5, rtol: float = 1e-4) -> None:
+    a, b = floats(a), floats(b)
+    assert set(a) == set(b), f"{what}: outputs {sorted(a)} vs {sorted(b)}"
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], atol=atol, rtol=rtol, msg=lambda m: f"{what}, output {k!r}: {m}")
+
+
+def without_dropout(model: nn.Module) -> nn.Module:
+    """``model`` with every dropout a no-op (modules replaced by ``nn.Identity``, LSTM dropout 0)."""
+    for parent in list(model.modules()):
+        for child_name, child in list(parent.named_children()):
+            if isinstance(child, nn.modules.dropout._DropoutNd):
+                setattr(parent, child_name, nn.Identity())
+            elif isinstance(child, nn.RNNBase):
+                child.dropout = 0.0
+    return model
+
+
+def swap_norms(model: nn.Module) -> int:
+    """Replace every batch norm by a ``GroupNorm(1, C)``; the number replaced."""
+    n = 0
+    for parent in list(model.modules()):
+        for child_name, child in list(parent.named_children()):
+            if isinstance(child, nn.modules.batchnorm._BatchNorm):
+                setattr(parent, child_name, nn.GroupNorm(1, child.num_features))
+                n += 1
+    return n
+
+
+MODES = ("train", "eval, grad", "eval, no_grad")
+
+
+def run(model: nn.Module, x: torch.Tensor, mode: str) -> dict:
+    model.train(mode == "train")
+    with torch.set_grad_enabled(mode != "eval, no_grad"):
+        return model(x)
+
+
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_forward_backward_every_parameter_gets_gradient(name, conv):
+    model, x = build(name, conv)
+    model.train()
     out = model(x)
     assert isinstance(out, dict) and out, "forward must return a non-empty dict of named outputs"
     total = 0
-    for key, val in out.items():
-        if not isinstance(val, torch.Tensor) or not val.is_floating_point():
-            continue
+    for key, val in floats(out).items():
         assert torch.isfinite(val).all(), f"{name}: output {key!r} has non-finite values"
         total = total + val.float().mean()
     total.backward()
-    missing = [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not torch.isfinite(p.grad).all())]
+    missing = [n for n, p in model.named_parameters()
+               if p.requires_grad and (p.grad is None or not torch.isfinite(p.grad).all())]
     assert not missing, f"{name}: parameters without a finite gradient: {missing[:10]}"
 
 
-@pytest.mark.parametrize("name", list_models())
-def test_eval_outputs_equal_with_and_without_the_packed_inference_convolutions(name, monkeypatch):
-    """Eval without autograd folds BatchNorm and runs prepacked oneDNN convolutions (omnidl.nn.inference); the
-    outputs must be those of the modules' own composition (1e-4 of each output's scale: random weights, deep
-    networks, float32)."""
-    import omnidl.nn.inference as inf
-    torch.manual_seed(0)
-    cfg = smoke_config(name)
-    model = create_model(name, **cfg["kwargs"])
-    for m in model.modules():                      # non-trivial running statistics
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.2, 0.2)
-            m.running_var.uniform_(0.5, 1.5)
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_same_modules_and_hooks_in_every_mode(name, conv):
+    model, x = build(name, conv)
+    calls: list[str] = []
+    for module_name, module in model.named_modules():
+        module.register_forward_hook(lambda m, i, o, module_name=module_name: calls.append(module_name))
+    seen = {}
+    for mode in MODES:
+        calls.clear()
+        run(model, x, mode)
+        seen[mode] = list(calls)
+    assert seen["eval, grad"] == seen["train"], f"{name}: eval with grad runs other modules than training"
+    assert seen["eval, no_grad"] == seen["train"], f"{name}: eval without grad runs other modules than training"
+    leaves = {n for n, m in model.named_modules() if not list(m.children()) and list(m.parameters(recurse=False))}
+    assert leaves <= set(seen["train"]), f"{name}: modules with parameters never called: {sorted(leaves - set(calls))}"
+
+
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_swapped_norm_takes_effect_in_every_mode(name, conv):
+    model, x = build(name, conv)
+    without_dropout(model)
+    before = run(model, x, "eval, no_grad")
+    assert swap_norms(model) > 0, f"{name}: no batch norm to swap"
+    fired = []
+    for m in model.modules():
+        if isinstance(m, nn.GroupNorm):
+            m.register_forward_hook(lambda *_: fired.append(1))
+    outs = {}
+    for mode in MODES:
+        fired.clear()
+        outs[mode] = run(model, x, mode)
+        assert fired, f"{name}: the swapped norms did not run in mode {mode!r}"
+    # GroupNorm has no running statistics and dropout is off: the three modes compute one function
+    assert_outputs_close(outs["eval, grad"], outs["train"], f"{name}: eval with grad vs train")
+    assert_outputs_close(outs["eval, no_grad"], outs["train"], f"{name}: eval without grad vs train")
+    changed = [k for k, v in floats(before).items() if not torch.allclose(v, outs["eval, no_grad"][k])]
+    assert changed, f"{name}: swapping the norms left every output unchanged"
+
+
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_fx_symbolic_trace(name, conv):
+    model, x = build(name, conv)
     model.eval()
-    h, w = cfg["size"]
-    x = torch.rand(1, 3, h, w)
-    outs = []
-    for enabled in (True, False):
-        monkeypatch.setattr(inf, "ENABLED", enabled)
-        with torch.no_grad():
-            outs.append(model(x))
-    for key, val in outs[1].items():
-        if isinstance(val, torch.Tensor) and val.is_floating_point():
-            scale = val.abs().max().clamp_min(1e-6)
-            torch.testing.assert_close(outs[0][key] / scale, val / scale, rtol=0, atol=1e-4, msg=f"{name}: {key}")
+    traced = torch.fx.symbolic_trace(model)
+    with torch.no_grad():
+        assert_outputs_close(traced(x), model(x), f"{name}: fx-traced vs eager")
 
 
-@pytest.mark.parametrize("name", list_models())
-def test_training_with_and_without_the_native_batch_norm_agrees(name, monkeypatch):
-    """Every model trains its batch norms with omnidl.nn.batch_norm (native on NCHW maps): its modules are that
-    class, and a training step's outputs and running statistics equal those of ``nn.BatchNorm2d``'s own forward
-    (1e-4 of each tensor's scale: random weights, deep networks, float32). Its parameter gradients are compared as
-    one vector (relative L2 distance 1e-2): a ReLU whose input lies within rounding of zero may switch sides and
-    route one value's gradient differently (HorizonNet's smoke configuration has one, 9e-7 against 2.5e-7, which
-    moves its first tower's weight gradient by 1 % and the whole by 8e-4). The batch norm's own gradients are
-    compared element by element in tests/nn/test_batch_norm.py."""
-    from omnidl.nn import batch_norm
-    torch.manual_seed(0)
-    cfg = smoke_config(name)
-    model = create_model(name, **cfg["kwargs"])
-    norms = [m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)]
-    assert norms and all(type(m) is batch_norm.BatchNorm2d for m in norms), name
-    start = {k: v.clone() for k, v in model.state_dict().items()}
-    h, w = cfg["size"]
-    x = torch.rand(2, 3, h, w)
-    runs = []
-    for enabled in (True, False):
-        monkeypatch.setattr(batch_norm, "ENABLED", enabled)
-        model.load_state_dict(start)
-        model.train()
-        model.zero_grad(set_to_none=True)
-        torch.manual_seed(1)                       # the same dropout masks
-        out = model(x)
-        sum(v.float().square().mean() for v in out.values()
-            if isinstance(v, torch.Tensor) and v.is_floating_point()).backward()
-        tensors = {k: v.detach() for k, v in out.items() if isinstance(v, torch.Tensor) and v.is_floating_point()}
-        tensors.update((k, v.clone()) for k, v in model.state_dict().items() if "running" in k)
-        runs.append((tensors, {n: p.grad for n, p in model.named_parameters() if p.grad is not None},
-                     {k: v.clone() for k, v in model.state_dict().items() if "batches" in k}))
-    (a, grad_a, count_a), (b, grad_b, count_b) = runs
-    assert a.keys() == b.keys() and grad_a.keys() == grad_b.keys() and count_a.keys() == count_b.keys(), name
-    for key in b:
-        scale = b[key].abs().max().clamp_min(1e-6)
-        torch.testing.assert_close(a[key] / scale, b[key] / scale, rtol=0, atol=1e-4, msg=f"{name}: {key}")
-    assert all(torch.equal(count_a[k], count_b[k]) for k in count_b), name
-    distance = sum(float((grad_a[k] - grad_b[k]).square().sum()) for k in grad_b) ** 0.5
-    assert distance <= 1e-2 * sum(float(g.square().sum()) for g in grad_b.values()) ** 0.5, name
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_compile_fullgraph_training_step_matches_eager(name, conv):
+    """Dynamo captures the whole model as one graph (``fullgraph=True``), forward and backward through AOT autograd
+    (backend ``aot_eager``: the capture without Inductor's code generation, which ``test_inductor_compile_matches_eager``
+    covers). ``nn.LSTM`` (HorizonNet) needs Dynamo's ``allow_rnn``, which ``trainer.compile`` sets too."""
+    torch._dynamo.reset()
+    model, x = build(name, conv)
+    without_dropout(model).train()
+    compiled = torch.compile(model, fullgraph=True, dynamic=False, backend="aot_eager")
+    results = []
+    with torch._dynamo.config.patch(allow_rnn=True):
+        for net in (model, compiled):
+            model.zero_grad(set_to_none=True)
+            out = floats(net(x))
+            sum(v.float().square().mean() for v in out.values()).backward()
+            results.append((out, {n: p.grad for n, p in model.named_parameters() if p.grad is not None}))
+    (eager, eager_grads), (comp, comp_grads) = results
+    assert_outputs_close(comp, eager, f"{name}: compiled training forward vs eager")
+    assert set(comp_grads) == set(eager_grads)
+    for n in eager_grads:
+        torch.testing.assert_close(comp_grads[n], eager_grads[n], atol=1e-5, rtol=1e-4,
+                                   msg=lambda m: f"{name}: gradient of {n}: {m}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("conv", ["standard", "projected"])
+def test_inductor_compile_matches_eager(conv):
+    """FreDSNet through Inductor (the default backend of ``trainer.compile`` and ``omnidl predict --compile``):
+    a forward and a training step."""
+    torch._dynamo.reset()
+    model, x = build("fredsnet", conv)
+    without_dropout(model)
+    compiled = torch.compile(model, fullgraph=True, dynamic=False)
+    model.eval()
+    with torch.no_grad():
+        assert_outputs_close(compiled(x), model(x), "inductor forward vs eager", atol=1e-4, rtol=1e-3)
+    model.train()
+    losses = [sum(v.square().mean() for v in floats(net(x)).values()) for net in (model, compiled)]
+    torch.testing.assert_close(losses[1], losses[0], atol=1e-4, rtol=1e-3)
+    losses[1].backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters() if p.requires_grad)

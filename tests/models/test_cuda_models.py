@@ -6,6 +6,8 @@ import torch
 from omnidl.models import create_model, list_models
 from omnidl.models.registry import smoke_config
 
+from .test_all_models import IDS, VARIANTS, build
+
 pytestmark = [pytest.mark.cuda,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA is not available")]
 CUDA = torch.device("cuda")
@@ -15,13 +17,10 @@ def _loss(out: dict) -> torch.Tensor:
     return sum(v.float().mean() for v in out.values() if isinstance(v, torch.Tensor) and v.is_floating_point())
 
 
-@pytest.mark.parametrize("name", list_models())
-def test_model_forward_backward_cuda_matches_cpu(name):
-    torch.manual_seed(0)
-    cfg = smoke_config(name)
-    model = create_model(name, **cfg["kwargs"]).double().eval()  # eval: no dropout / batch statistics
-    h, w = cfg["size"]
-    x = torch.rand(2, 3, h, w, dtype=torch.float64)
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_model_forward_backward_cuda_matches_cpu(name, conv):
+    model, x = build(name, conv)
+    model, x = model.double().eval(), x.double()  # eval: no dropout / batch statistics
     out_cpu = model(x)
     _loss(out_cpu).backward()
     grads_cpu = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
@@ -68,8 +67,8 @@ def _cpu_and_cuda_eval(model, x):
 
 @pytest.mark.parametrize("name", list_models())
 def test_model_eval_float32_cuda_matches_cpu(name):
-    """Eval float32: the CPU takes its fast inference paths (native kernels, Winograd, fused epilogues), CUDA the
-    tensor ops; the two agree (cuDNN's TF32 is switched off so that both are float32 arithmetic)."""
+    """Eval float32 on the CPU and on CUDA agree (cuDNN's TF32 is switched off so that both are float32
+    arithmetic)."""
     torch.manual_seed(0)
     cfg = smoke_config(name)
     model = create_model(name, **cfg["kwargs"]).eval()
@@ -83,7 +82,7 @@ def test_model_eval_float32_cuda_matches_cpu(name):
 
 
 def test_fredsnet_resnet50_eval_cuda_matches_cpu():
-    """The thesis model at a size where the CPU's row-blocked fusion and Fourier-block epilogues are taken."""
+    """The thesis model (ResNet-50, width 1) at 256x128."""
     torch.manual_seed(0)
     model = create_model("fredsnet", backbone="resnet50", width=1.0).eval()
     x = torch.rand(1, 3, 128, 256)
@@ -93,16 +92,13 @@ def test_fredsnet_resnet50_eval_cuda_matches_cpu():
         torch.testing.assert_close(out[k].cpu(), ref[k], rtol=1e-4, atol=1e-4 * scale, msg=k)
 
 
-@pytest.mark.parametrize("name", list_models())
-def test_model_eval_forward_replays_from_a_cuda_graph(name):
-    """Batch-1 inference is launch-bound on a GPU; a CUDA graph removes the launch gaps (``benchmarks/gpu.py``:
-    FreDSNet 20 -> 103 fps at 512x256 on an H200). That needs a forward without host syncs or host-to-device
-    copies: captured once, the graph replays on new input what the eager forward computes."""
-    torch.manual_seed(0)
-    cfg = smoke_config(name)
-    model = create_model(name, **cfg["kwargs"]).to(CUDA).eval()
-    h, w = cfg["size"]
-    x = torch.rand(1, 3, h, w, device=CUDA)
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_model_eval_forward_replays_from_a_cuda_graph(name, conv):
+    """Batch-1 inference is launch-bound on a GPU; a CUDA graph (``torch.compile(mode="reduce-overhead")``) removes
+    the launch gaps. That needs a forward without host syncs or host-to-device copies: captured once, the graph
+    replays on new input what the eager forward computes."""
+    model, x = build(name, conv)
+    model, x = model.to(CUDA).eval(), x[:1].to(CUDA)
     with torch.no_grad():
         side = torch.cuda.Stream()
         side.wait_stream(torch.cuda.current_stream())

@@ -249,41 +249,27 @@ def test_hydra_configs_compose_and_build(overrides):
 
 
 @pytest.mark.parametrize("train", [False, True])
-@pytest.mark.parametrize("channels_last", [False, True])
-@pytest.mark.parametrize("mid,out,projected", [(4, 3, False), (24, 1, True)], ids=["row blocks", "tap projection"])
-def test_fusion_head_is_the_weighted_sum_of_upsampled_maps(train, channels_last, mid, out, projected, monkeypatch):
-    """The row-blocked head (omnidl.nn.fusion) and the head projected onto its output convolution's taps
-    (omnidl.nn.tap_projection, few output channels) equal the literal formula, in eval and training, with
-    gradients."""
-    import omnidl.nn.fusion as fusion
-    import omnidl.nn.tap_projection as tap_projection
+def test_fusion_head_is_the_weighted_sum_of_upsampled_maps(train):
+    """The task head is the literal formula ``out(m_0 + sum_i w_i up(WConv_i(d_i)))``, outputs and gradients."""
     from omnidl.models.fredsnet import FusionHead
-    monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)          # several row blocks and deferred width passes
-    monkeypatch.setattr(fusion, "MIN_BLOCK_ROWS", 8)       # (two 8-row blocks of the 16-row map)
-    calls = []
-    shift_sum = tap_projection.shift_sum
-    monkeypatch.setattr(tap_projection, "shift_sum", lambda *a: calls.append(1) or shift_sum(*a))
     torch.manual_seed(4)
-    head = FusionHead([8, 6, 4], mid, out, activation="prelu", out_activation="relu", out_norm=True,
+    head = FusionHead([8, 6, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
                       wconv_kwargs={}).double().train(train)
     with torch.no_grad():
         head.branch_weights.copy_(torch.tensor([-0.7, 1.3]))
     maps = [torch.randn(2, 8, 4, 8), torch.randn(2, 6, 8, 16), torch.randn(2, 4, 16, 32)]
     maps = [m.double().requires_grad_() for m in maps]
-    if channels_last:
-        head = head.to(memory_format=torch.channels_last)
     literal = copy.deepcopy(head)
     up = [F.interpolate(med(d), size=(16, 32), mode="bilinear", align_corners=True)
           for med, d in zip(literal.mediators, maps)]
     expect = literal.out(up[0] + literal.branch_weights[0] * up[1] + literal.branch_weights[1] * up[2])
-    got = head([m.contiguous(memory_format=torch.channels_last) if channels_last else m for m in maps])
+    got = head(maps)
     torch.testing.assert_close(got, expect)
     g = torch.randn_like(expect)
     ga = torch.autograd.grad((got * g).sum(), maps + list(head.parameters()))
     gb = torch.autograd.grad((expect * g).sum(), maps + list(literal.parameters()))
     for a, b in zip(ga, gb):
         torch.testing.assert_close(a, b)
-    assert bool(calls) == projected
 
 
 def test_channels_last_matches_contiguous_layout():
@@ -299,63 +285,9 @@ def test_channels_last_matches_contiguous_layout():
         torch.testing.assert_close(oa[k], ob[k], atol=1e-4, rtol=1e-4)
 
 
-@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
-def test_fusion_head_block_floor_keeps_outputs(dtype, tol, monkeypatch):
-    """The 16-row block floor (issue 17 item 4: the head's cost stays linear in pixels) gives the outputs of the
-    previous 8-row floor and of one whole-map block."""
-    import omnidl.nn.fusion as fusion
-    from omnidl.models.fredsnet import FusionHead
-    assert fusion.MIN_BLOCK_ROWS == 16 and fusion.rows_per_block(1, 128, 1 << 20) == 16
-    torch.manual_seed(6)
-    head = FusionHead([8, 6, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
-                      wconv_kwargs={}).to(dtype).eval().to(memory_format=torch.channels_last)
-    maps = [torch.randn(1, c, 8 * k, 16 * k, dtype=dtype).contiguous(memory_format=torch.channels_last)
-            for c, k in ((8, 1), (6, 2), (4, 4))]                     # full map 32x64
-    monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)
-    outs = {}
-    with torch.no_grad():
-        for floor in (8, 16, 32):                                    # 4, 2 and 1 row blocks
-            monkeypatch.setattr(fusion, "MIN_BLOCK_ROWS", floor)
-            outs[floor] = head(maps)
-    for floor in (8, 16):
-        torch.testing.assert_close(outs[floor], outs[32], rtol=tol, atol=tol)
-
-
-@pytest.mark.parametrize("channels_last", [False, True])
-@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
-def test_fusion_head_row_maps_equal_the_literal_formula(channels_last, dtype, tol, monkeypatch):
-    """In eval without autograd the head gives UpsampleSum its larger lower-resolution maps by their rows
-    (fusion.RowMap; with one-byte blocks every map but the first) and the full-size one as a row source: the literal
-    formula's outputs."""
-    import omnidl.models.fredsnet as fredsnet
-    import omnidl.nn.fusion as fusion
-    monkeypatch.setattr(fusion, "BLOCK_BYTES", 1)
-    kinds = []
-    real = fredsnet.UpsampleSum
-    monkeypatch.setattr(fredsnet, "UpsampleSum", lambda maps, *a, **k: kinds.append(
-        [type(m).__name__ for m in maps]) or real(maps, *a, **k))
-    torch.manual_seed(8)
-    head = fredsnet.FusionHead([8, 6, 4, 4], 4, 3, activation="prelu", out_activation="relu", out_norm=True,
-                               wconv_kwargs={}).to(dtype).eval()
-    with torch.no_grad():
-        head.branch_weights.copy_(torch.tensor([-0.7, 1.3, 0.4]))
-    fmt = torch.channels_last if channels_last else torch.contiguous_format
-    head = head.to(memory_format=fmt)
-    maps = [torch.randn(2, c, h, 2 * h, dtype=dtype).contiguous(memory_format=fmt)
-            for c, h in ((8, 3), (6, 6), (4, 12), (4, 24))]
-    with torch.no_grad():
-        got = head(maps)
-        up = [F.interpolate(med(d), size=(24, 48), mode="bilinear", align_corners=True)
-              for med, d in zip(head.mediators, maps)]
-        expect = head.out(up[0] + sum(w * u for w, u in zip(head.branch_weights, up[1:])))
-    assert kinds == [["Tensor", "RowMap", "RowMap", "function"]]
-    torch.testing.assert_close(got, expect, rtol=tol, atol=tol)
-
-
 @pytest.mark.parametrize("channels_last", [False, True])
 def test_eval_without_autograd_equals_the_autograd_composition(channels_last):
-    """Without autograd the decoder adds its weighted skip in place and the Fourier blocks write their parts straight
-    into the output (no concatenated copy); with autograd they compose the tensors as in training: same outputs."""
+    """Eval with and without autograd compute the same outputs (one network in every mode)."""
     torch.manual_seed(7)
     m = FreDSNet(**SMALL, channels_last=channels_last).eval().double()
     with torch.no_grad():

@@ -98,35 +98,30 @@ def test_official_checkpoint_converter(rnn, tmp_path):
 
 
 @pytest.mark.parametrize("width", [16, 17, 2, 3])
-def test_circular_max_pool_without_autograd_equals_the_padded_pool(width):
+def test_circular_max_pool_is_the_pool_of_the_wrapped_map(width):
     from omnidl.models.horizonnet import CircularMaxPool2d
     torch.manual_seed(0)
     x = torch.randn(2, 3, 9, width)
     ref = F.max_pool2d(torch.cat([x[..., -1:], x, x[..., :1]], -1), 3, 2, padding=(1, 0))
-    with torch.no_grad():
-        out = CircularMaxPool2d()(x)
-        out_cl = CircularMaxPool2d()(x.contiguous(memory_format=torch.channels_last))
-    torch.testing.assert_close(out, ref, rtol=0, atol=0)
-    torch.testing.assert_close(out_cl, ref, rtol=0, atol=0)
-    torch.testing.assert_close(CircularMaxPool2d()(x), ref, rtol=0, atol=0)         # autograd: the padded copy
+    torch.testing.assert_close(CircularMaxPool2d()(x), ref, rtol=0, atol=0)
+    torch.testing.assert_close(CircularMaxPool2d()(x.contiguous(memory_format=torch.channels_last)), ref,
+                               rtol=0, atol=0)
 
 
-def test_channels_last_in_eval_nchw_in_training_same_outputs():
+def test_channels_last_gives_the_same_outputs_in_every_mode():
     torch.manual_seed(1)
-    m = HorizonNet("resnet18", hidden=16)
-    conv = m.encoder.body.layer1[0].conv1.weight
-    assert m.channels_last == "auto" and not m.uses_channels_last
+    m = HorizonNet("resnet18", hidden=16, channels_last=True)
+    assert m.channels_last and m.encoder.body.conv1.weight.is_contiguous(memory_format=torch.channels_last)
+    b = HorizonNet("resnet18", hidden=16, channels_last=False)
+    b.load_state_dict(m.state_dict())
     x = torch.rand(1, 3, 64, 128)
+    for net in (m, b):
+        net.eval()
     with torch.no_grad():
-        m.eval()
-        assert m.uses_channels_last and m.encoder.body.conv1.weight.is_contiguous(memory_format=torch.channels_last)
-        a = m(x)
-        b = HorizonNet("resnet18", hidden=16, channels_last=False).eval()
-        b.load_state_dict(m.state_dict())
-        ref = b(x)
+        a, ref = m(x), b(x)
     for k in ref:
         torch.testing.assert_close(a[k], ref[k], rtol=1e-5, atol=1e-5)
     m.train()
-    assert not m.uses_channels_last and m.encoder.body.layer1[0].conv1.weight is conv
+    assert m.encoder.body.conv1.weight.is_contiguous(memory_format=torch.channels_last)   # no switch by mode
     with pytest.raises(ValueError, match="channels_last"):
         HorizonNet("resnet18", hidden=16, channels_last="yes")

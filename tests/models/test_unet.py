@@ -87,7 +87,7 @@ def test_bad_arguments():
         UNet(conv="equi")
     with pytest.raises(ValueError, match="tasks"):
         UNet(tasks=["normals"])
-    with pytest.raises(ValueError, match="expected an image batch"):
+    with pytest.raises(ValueError, match=r"expects RGB images of shape \(B, 3, H, W\)"):
         UNet(base_channels=2, levels=1)(torch.rand(3, 8, 8))
 
 

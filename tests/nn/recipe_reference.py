@@ -1,5 +1,5 @@
 """Test reference: the calibrated-convolution offset recipe of the public CalibratedConvolutions code,
-re-written from its description (``shared/reference/holinet_calib_omniscv.md`` §2.2), numpy float64.
+re-written from its description (``docs/design.md#calibrated-convolution-offsets``), numpy float64.
 
 As coded there: kernel angular size from the field of view and the feature-map width
 (``alpha = k / img_W * FOV``, ``d = k / (2 tan(alpha / 2))``), kernel rays ``normalize([j/d, i/d, 1])``,

@@ -43,7 +43,8 @@ def test_equirect_horizontal_extent_grows_as_inverse_cos_latitude():
     W, H, k = 128, 64, 3
     cam = Equirectangular(width=W, height=H)
     off = compute_offsets(cam, (H, W), k, 1, 1, 1)
-    y, x = sample_positions(off, (H, W), (k, k), (1, 1), (1, 1), (1, 1))
+    pos, _ = sample_positions(off, None, (H, W), (k, k), (1, 1), (1, 1), (1, 1))
+    y, x = pos[..., 0], pos[..., 1]
     row = k // 2  # middle kernel row: taps k*row ... k*row + k-1
     extent = (x[:, 5, row * k + k - 1] - x[:, 5, row * k]) * 2 * math.pi / W  # longitude span (rad)
     lat = math.pi / 2 - math.pi * (torch.arange(H, dtype=torch.float64) + 0.5) / H

@@ -1,5 +1,5 @@
 """GPU check of the renderer (``pytest -m cuda``; skipped without a CUDA device): ``render(..., device="cuda")``
-keeps the tensor ops (the native passes are CPU float32 only) and gives the CPU's maps."""
+runs the surface op's PyTorch implementation (its native kernel is CPU float32 only) and gives the CPU's maps."""
 import pytest
 import torch
 

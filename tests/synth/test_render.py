@@ -277,7 +277,7 @@ def test_shadows_only_darken():
 
 def test_render_is_independent_of_the_thread_policy(monkeypatch):
     """render(threads=...) only changes how many intra-op threads run, never the result (bitwise)."""
-    from omnidl.nn import threads as T
+    from omnidl.utils import threads as T
     cam = build({"type": "equirect", "width": 64, "height": 32})
     sc = sample_room(3)
     pose = place_camera(sc, cam, 3)

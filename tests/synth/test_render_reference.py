@@ -1,4 +1,4 @@
-"""The fast renderer against the renderer before the issue-17 speed work (omnidl.synth.reference).
+"""The fast renderer against the renderer before the issue-17 speed work (tests/reference/synth_renderer.py).
 
 Every output key is compared: integer and boolean maps exactly, float maps to 1e-5 absolute plus 1e-5 relative
 (on the machine the speed work was done on they are bit-identical; the tolerance only absorbs a CPU whose
@@ -15,7 +15,7 @@ from omnidl.cameras import build, resolve_camera
 from omnidl.synth import place_camera, render, sample_room
 from omnidl.synth import layout as L
 from omnidl.synth import raycast as RC
-from omnidl.synth.reference import render_reference
+from tests.reference.synth_renderer import render_reference
 from omnidl.synth.tiles import ray_tiles, tile_batches, tile_candidates, tile_mask
 
 CAMERAS = {

@@ -8,8 +8,9 @@
  * in the core's cache, and multiplied at once by Wm (K*C, cout); the full (P, K*C) column matrix never exists.
  *
  * Layouts (row-major): x (H*W, C) channels-last input rows of one image, images x_img floats apart; out and gout
- * (P, cout) rows of one image, images P*cout floats apart; wm (K*C, cout), Wm[t*C + c][o] = weight[o][c][t];
- * gx (H*W, C) per image and gw (K*C, cout) are accumulated into (+=).
+ * (P, cout) rows of one image, images P*cout floats apart; wt (cout, K*C), wt[o][t*C + c] = weight[o][c][t] (the
+ * weight in channels-last order: a channels-last weight as it lies), i.e. Wm = wt^T; gx (H*W, C) per image and
+ * gw (K*C, cout) are accumulated into (+=).
  *
  * Threads: each call is one OpenMP parallel region of `nthreads` threads on PyTorch's own team (libgomp is the copy
  * PyTorch loaded), split by output positions, or for few positions (small deep maps) by output channels.
@@ -43,31 +44,43 @@ static void blas_rows(char ta, char tb, int m, int n, int k, float beta, const f
 typedef struct {
     const double *pos, *mask;
     int H, W, wrap;
+    double inv_w;  /* 1 / W */
 } taps_t;
+
+/* a coordinate this far from 0 (or not finite) is no position: beyond it floor() and the integer conversion would
+ * not be exact */
+#define FAR_COORD 4.5e15
 
 /* the four bilinear corners of tap row r: flat input pixels idx[j] and weights q[j]; q[j] = 0 for a corner that
  * reads zero (outside the image, a zero weight, a non-finite position). The weights are computed in float64 and
- * rounded once. */
+ * rounded once; with wrap the corner columns are taken modulo W. */
 static inline void corners(const taps_t *tp, int64_t r, int64_t idx[4], float q[4]) {
     const double y = tp->pos[2 * r], x = tp->pos[2 * r + 1], m = tp->mask[r];
     for (int j = 0; j < 4; ++j) {
         idx[j] = 0;
         q[j] = 0.0f;
     }
-    if (!isfinite(y) || !isfinite(x) || !isfinite(m)) return;
+    if (!(fabs(y) < FAR_COORD && fabs(x) < FAR_COORD && fabs(m) <= 1e300)) return;
     const double y0 = floor(y), x0 = floor(x), ly = y - y0, lx = x - x0;
     const double w[4] = {(1 - ly) * (1 - lx) * m, (1 - ly) * lx * m, ly * (1 - lx) * m, ly * lx * m};
+    const int64_t iy = (int64_t)y0, W = tp->W;
+    int64_t cx[2] = {(int64_t)x0, (int64_t)x0 + 1};
+    int okx[2];
+    if (tp->wrap) {  /* x0 mod W without a division per corner */
+        int64_t c = (int64_t)x0 - (int64_t)floor(x0 * tp->inv_w) * W;
+        while (c >= W) c -= W;
+        while (c < 0) c += W;
+        cx[0] = c;
+        cx[1] = c + 1 == W ? 0 : c + 1;
+        okx[0] = okx[1] = 1;
+    } else {
+        okx[0] = cx[0] >= 0 && cx[0] < W;
+        okx[1] = cx[1] >= 0 && cx[1] < W;
+    }
     for (int j = 0; j < 4; ++j) {
-        const double cy = y0 + (j >> 1);
-        double cx = x0 + (j & 1);
-        if (w[j] == 0.0 || !(cy >= 0.0 && cy <= tp->H - 1)) continue;
-        if (tp->wrap) {
-            cx = fmod(cx, (double)tp->W);
-            if (cx < 0.0) cx += tp->W;
-        } else if (!(cx >= 0.0 && cx <= tp->W - 1)) {
-            continue;
-        }
-        idx[j] = (int64_t)cy * tp->W + (int64_t)cx;
+        const int64_t cy = iy + (j >> 1);
+        if (w[j] == 0.0 || cy < 0 || cy >= tp->H || !okx[j & 1]) continue;
+        idx[j] = cy * W + cx[j & 1];
         q[j] = (float)w[j];
     }
 }
@@ -174,9 +187,9 @@ static void channel_share(int cout, int t, int nt, int *c0, int *c1) {
 /* Forward of B images: out rows (B, P, cout) = bias + gathered taps @ Wm, in blocks of `block` positions.
  * Returns 0, or 1 when a buffer cannot be allocated. */
 int omnidl_foc_forward(const float *x, int64_t x_img, int C, int H, int W, const double *pos, const double *mask,
-                       int wrap, int K, int64_t P, int B, const float *wm, int cout, const float *bias, float *out,
+                       int wrap, int K, int64_t P, int B, const float *wt, int cout, const float *bias, float *out,
                        int64_t block, int nthreads) {
-    const taps_t tp = {pos, mask, H, W, wrap};
+    const taps_t tp = {pos, mask, H, W, wrap, 1.0 / W};
     const int KC = K * C;
     const int64_t total = (int64_t)B * P;
     const int by_channels = split_channels(total, block, nthreads, cout);
@@ -189,7 +202,7 @@ int omnidl_foc_forward(const float *x, int64_t x_img, int C, int H, int W, const
 #pragma omp parallel num_threads(nthreads) reduction(| : err)
     {
 #if HAVE_KERNEL
-        pack_b(KC, cout, wm, cout, 1, wp);  /* an implicit barrier: every panel is packed before any is read */
+        pack_b(KC, cout, wt, 1, KC, wp);  /* Wm = wt^T; an implicit barrier: every panel is packed before use */
 #endif
         int t, nt;
         team(&t, &nt);
@@ -217,7 +230,7 @@ int omnidl_foc_forward(const float *x, int64_t x_img, int C, int H, int W, const
 #else
             if (bias)
                 for (int i = 0; i < m; ++i) memcpy(o + (int64_t)i * cout, bias, sizeof(float) * (size_t)cout);
-            blas_rows('N', 'N', m, cout, KC, bias ? 1.0f : 0.0f, A, KC, wm, cout, o, cout);
+            blas_rows('N', 'T', m, cout, KC, bias ? 1.0f : 0.0f, A, KC, wt, KC, o, cout);
 #endif
             s += m;
         }
@@ -259,9 +272,9 @@ static void touched_rows(const taps_t *tp, int K, int64_t P, int64_t s0, int64_t
  * positions the weight gradient is split by output channels instead, straight into gw. gx (B images of x_img
  * floats) or gw (K*C, cout) may be NULL when not needed. Returns 0, or 1 when a buffer cannot be allocated. */
 int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, const double *pos, const double *mask,
-                        int wrap, int K, int64_t P, int B, const float *wm, int cout, const float *gout, float *gx,
+                        int wrap, int K, int64_t P, int B, const float *wt, int cout, const float *gout, float *gx,
                         float *gw, int64_t block, int nthreads) {
-    const taps_t tp = {pos, mask, H, W, wrap};
+    const taps_t tp = {pos, mask, H, W, wrap, 1.0 / W};
     const int KC = K * C;
     const int64_t total = (int64_t)B * P;
     const int gw_by_channels = split_channels(total, block, nthreads, cout);
@@ -279,7 +292,7 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
 #pragma omp parallel num_threads(nthreads) reduction(| : err)
         {
 #if HAVE_KERNEL
-            if (gx) pack_b(cout, KC, wm, 1, cout, wtp);  /* an implicit barrier follows */
+            if (gx) pack_b(cout, KC, wt, KC, 1, wtp);  /* Wm^T = wt; an implicit barrier follows */
 #endif
             int t, nt;
             team(&t, &nt);
@@ -338,7 +351,7 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
 #if HAVE_KERNEL
                     gemm_packed(m, KC, cout, g, cout, 1, wtp, A, KC, 0, NULL);  /* A (m, KC) = g Wm^T */
 #else
-                    blas_rows('N', 'T', m, KC, cout, 0.0f, g, cout, wm, cout, A, KC);
+                    blas_rows('N', 'N', m, KC, cout, 0.0f, g, cout, wt, KC, A, KC);
 #endif
                     scatter(base + b * x_img, C, &tp, p * K, (p + m) * K, A);
                     s += m;

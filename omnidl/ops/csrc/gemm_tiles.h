@@ -67,32 +67,50 @@ static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const flo
 #define NR 16
 #define KC_BLOCK 256
 
-/* c (mr, nr) (+)= a (mr, k) b (k, 16) (+ bias); as the AVX-512 kernel's (no prefetch) */
+/* c (mr, nr) (+)= a (mr, k) b (k, 16) (+ bias); as the AVX-512 kernel's (no prefetch). Twelve named ymm
+ * accumulators, so that they stay in registers. */
 static void kernel_tile(int k, const float *a, int64_t rs, int64_t cs, const float *b, float *c, int64_t ldc,
                         int accumulate, int mr, int nr, const float *bias, int prefetch) {
     (void)prefetch;
-    __m256 acc[MR][2];
-    const float *rows[MR];
-    for (int i = 0; i < MR; ++i) {
-        acc[i][0] = acc[i][1] = _mm256_setzero_ps();
-        rows[i] = a + (i < mr ? i * rs : 0);
-    }
+    __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00;
+    __m256 c30 = c00, c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00;
+    const float *a0 = a, *a1 = a + (mr > 1 ? rs : 0), *a2 = a + (mr > 2 ? 2 * rs : 0);
+    const float *a3 = a + (mr > 3 ? 3 * rs : 0), *a4 = a + (mr > 4 ? 4 * rs : 0), *a5 = a + (mr > 5 ? 5 * rs : 0);
     for (int p = 0; p < k; ++p) {
-        const __m256 b0 = _mm256_loadu_ps(b + NR * p), b1 = _mm256_loadu_ps(b + NR * p + 8);
+        const __m256 b0 = _mm256_loadu_ps(b + 16 * p), b1 = _mm256_loadu_ps(b + 16 * p + 8);
         const int64_t o = p * cs;
-#pragma GCC unroll 6
-        for (int i = 0; i < MR; ++i) {
-            const __m256 t = _mm256_broadcast_ss(rows[i] + o);
-            acc[i][0] = _mm256_fmadd_ps(t, b0, acc[i][0]);
-            acc[i][1] = _mm256_fmadd_ps(t, b1, acc[i][1]);
-        }
+        __m256 t = _mm256_broadcast_ss(a0 + o);
+        c00 = _mm256_fmadd_ps(t, b0, c00); c01 = _mm256_fmadd_ps(t, b1, c01);
+        t = _mm256_broadcast_ss(a1 + o);
+        c10 = _mm256_fmadd_ps(t, b0, c10); c11 = _mm256_fmadd_ps(t, b1, c11);
+        t = _mm256_broadcast_ss(a2 + o);
+        c20 = _mm256_fmadd_ps(t, b0, c20); c21 = _mm256_fmadd_ps(t, b1, c21);
+        t = _mm256_broadcast_ss(a3 + o);
+        c30 = _mm256_fmadd_ps(t, b0, c30); c31 = _mm256_fmadd_ps(t, b1, c31);
+        t = _mm256_broadcast_ss(a4 + o);
+        c40 = _mm256_fmadd_ps(t, b0, c40); c41 = _mm256_fmadd_ps(t, b1, c41);
+        t = _mm256_broadcast_ss(a5 + o);
+        c50 = _mm256_fmadd_ps(t, b0, c50); c51 = _mm256_fmadd_ps(t, b1, c51);
     }
-    float tmp[NR];
+    __m256 r[MR][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31}, {c40, c41}, {c50, c51}};
+    const __m256 bias0 = bias && nr == NR ? _mm256_loadu_ps(bias) : _mm256_setzero_ps();
+    const __m256 bias1 = bias && nr == NR ? _mm256_loadu_ps(bias + 8) : _mm256_setzero_ps();
     for (int i = 0; i < mr; ++i) {
         float *ci = c + i * ldc;
-        _mm256_storeu_ps(tmp, acc[i][0]);
-        _mm256_storeu_ps(tmp + 8, acc[i][1]);
-        for (int j = 0; j < nr; ++j) ci[j] = tmp[j] + (bias ? bias[j] : 0.0f) + (accumulate ? ci[j] : 0.0f);
+        if (nr == NR) {
+            __m256 r0 = _mm256_add_ps(r[i][0], bias0), r1 = _mm256_add_ps(r[i][1], bias1);
+            if (accumulate) {
+                r0 = _mm256_add_ps(r0, _mm256_loadu_ps(ci));
+                r1 = _mm256_add_ps(r1, _mm256_loadu_ps(ci + 8));
+            }
+            _mm256_storeu_ps(ci, r0);
+            _mm256_storeu_ps(ci + 8, r1);
+        } else {
+            float tmp[NR];
+            _mm256_storeu_ps(tmp, r[i][0]);
+            _mm256_storeu_ps(tmp + 8, r[i][1]);
+            for (int j = 0; j < nr; ++j) ci[j] = tmp[j] + (bias ? bias[j] : 0.0f) + (accumulate ? ci[j] : 0.0f);
+        }
     }
 }
 #define HAVE_KERNEL 1

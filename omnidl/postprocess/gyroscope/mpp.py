@@ -30,8 +30,7 @@ from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.geometry.panorama import sample_panorama
 
 from .icosahedron import icosahedron_vertices
-from . import native_terms
-from .photometric import SphereImage, apply_update, blur_fast, rodrigues, rotation_jacobian, to_gray
+from .photometric import SphereImage, blur_fast, rodrigues, to_gray
 
 
 def abs_zn(I: Tensor) -> Tensor:
@@ -45,8 +44,8 @@ def mpp_samples(image: Tensor, level: int = 3, prefilter: bool = True) -> tuple[
     """Normalised grey levels of ``image (B, C, H, W)`` at the level-``level`` vertices.
 
     Returns ``(vertices (N, 3), weights (B, N))``. ``prefilter`` blurs the image to about the vertex
-    spacing first (anti-aliasing; libPeR samples bilinearly without it), with :func:`blur_fast` (both of
-    :func:`mpp_yaw`'s paths and the benchmark's baseline read these samples).
+    spacing first (anti-aliasing; libPeR samples bilinearly without it), with :func:`blur_fast`
+    (:func:`mpp_yaw` and the reference solvers of the tests and the benchmark read these samples).
     """
     gray = to_gray(image)
     X = icosahedron_vertices(level, gray.dtype, gray.device)
@@ -105,23 +104,6 @@ def _is_icosahedron(X: Tensor, level: int) -> bool:
     return X is ico or torch.equal(X, ico)
 
 
-def mpp_table(X: Tensor, I: Tensor, lambda_g: float, height: int = 64) -> Tensor:
-    """``(B, 4, h, 2h)`` equirect table of ``G`` and its ambient gradient (channels ``G, gx, gy, gz``).
-
-    For icosahedron vertices ``X`` the kernels are cached per (level, lambda_g, height) and the table is two
-    GEMMs (:func:`_kernels`; same values as :func:`mpp_field` at the grid up to float rounding)."""
-    B = I.shape[0]
-    level = _level_of(X)
-    if level is not None and X.dtype in (torch.float32, torch.float64) and _is_icosahedron(X, level):
-        K, Kr = _kernels(level, float(lambda_g), int(height), X.dtype, str(X.device))
-        G = I @ K.T  # (B, M)
-        grad = (Kr @ (I.T.unsqueeze(-1) * X.unsqueeze(1)).reshape(X.shape[0], B * 3)).view(-1, B, 3)  # (M, B, 3)
-        return torch.cat([G.unsqueeze(1), grad.permute(1, 2, 0)], 1).reshape(B, 4, height, 2 * height)
-    d = Equirectangular(width=2 * height, height=height).unproject_grid(X.dtype, X.device).direction.reshape(-1, 3)
-    G, grad = mpp_field(X, I, d.unsqueeze(0).expand(B, -1, -1), lambda_g, with_grad=True)
-    return torch.cat([G.unsqueeze(-1), grad], -1).transpose(1, 2).reshape(B, 4, height, 2 * height)
-
-
 @lru_cache(maxsize=8)
 def _symmetric_kernels(level: int, lambda_g: float, height: int, dtype: torch.dtype, device: str):
     """The table kernels of :func:`_kernels` on one octant of the grid, with the maps that give the rest.
@@ -133,7 +115,7 @@ def _symmetric_kernels(level: int, lambda_g: float, height: int, dtype: torch.dt
     ``x, y, z > 0``: the kernel rows read per table are 8x fewer (1.3 MB instead of 10 MB at the defaults:
     they stay in cache). Returns ``(K_o, Kr_o (M/8, N), perm (8, N), signs (8, 3), order (M,))`` with the
     table = ``(values per (s, octant point)).flatten()[order]``, or ``None`` when a sign flip of a vertex or
-    grid point is not one (then :func:`mpp_table_fast` uses the full kernels). The grid directions are
+    grid point is not one (then :func:`mpp_table` uses the full kernels). The grid directions are
     mirror images to ~2e-8 only (their float64 construction), so the symmetry serves float32 tables."""
     X = icosahedron_vertices(level, torch.float64, device)
     d = Equirectangular(width=2 * height, height=height).unproject_grid(torch.float64, device).direction.reshape(-1, 3)
@@ -154,14 +136,21 @@ def _symmetric_kernels(level: int, lambda_g: float, height: int, dtype: torch.dt
     return (K[octant].to(dtype), Kr[octant].to(dtype), torch.stack(perm), signs.to(dtype), where)
 
 
-def mpp_table_fast(X: Tensor, I: Tensor, lambda_g: float, height: int = 32) -> Tensor:
-    """:func:`mpp_table` for icosahedron vertices ``X`` from the kernels of one grid octant and the 8 sign-flip
-    symmetries in float32 (:func:`_symmetric_kernels`: ~10 ops on in-cache data instead of two passes over
-    10 MB of kernels); same values up to rounding. Float64 (or no symmetry): ``G = I @ K.T``,
-    ``grad.T = (I X).T @ Kr.T`` (the small operand on the left). Other ``X``: :func:`mpp_table`."""
+def mpp_table(X: Tensor, I: Tensor, lambda_g: float, height: int = 32) -> Tensor:
+    """``(B, 4, h, 2h)`` equirect table of ``G`` and its ambient gradient (channels ``G, gx, gy, gz``) of samples
+    ``I (B, N)`` at ``X (N, 3)``: the values of :func:`mpp_field` at the grid up to float rounding.
+
+    For icosahedron vertices ``X`` the image-independent kernels are cached per (level, lambda_g, height)
+    (:func:`_kernels`): in float32 those of one grid octant with the 8 sign-flip symmetries
+    (:func:`_symmetric_kernels`: ~10 ops on in-cache data instead of two passes over 10 MB of kernels); in float64
+    (or without the symmetry) ``G = I @ K.T``, ``grad.T = (I X).T @ Kr.T`` (the small operand on the left).
+    Other ``X``: :func:`mpp_field` at the grid directions."""
     level = _level_of(X)
     if level is None or X.dtype not in (torch.float32, torch.float64) or not _is_icosahedron(X, level):
-        return mpp_table(X, I, lambda_g, height)
+        B = I.shape[0]
+        d = Equirectangular(width=2 * height, height=height).unproject_grid(X.dtype, X.device).direction
+        G, grad = mpp_field(X, I, d.reshape(-1, 3).unsqueeze(0).expand(B, -1, -1), lambda_g, with_grad=True)
+        return torch.cat([G.unsqueeze(-1), grad], -1).transpose(1, 2).reshape(B, 4, height, 2 * height)
     B, N = I.shape
     sym = None if X.dtype != torch.float32 else _symmetric_kernels(level, float(lambda_g), int(height), X.dtype,
                                                                     str(X.device))
@@ -198,7 +187,7 @@ class MPPResult:
 def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, axis: Tensor | None = None,
             level: int = 3, lambda_g: float = 0.325, tries: int = 4, max_iter: int = 30, tol: float = 1e-6,
             prefilter: bool = True, reference_samples: Tensor | None = None, grid_height: int = 32,
-            impl: str = "fast", reference_field: Tensor | None = None) -> MPPResult:
+            reference_field: Tensor | None = None) -> MPPResult:
     """Yaw of ``current`` w.r.t. ``reference`` (both ``(B, C, H, W)`` equirect, or ``reference (1, ...)``).
 
     Args:
@@ -207,21 +196,14 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
         level, lambda_g: icosahedron subdivision ``n`` and Gaussian width (rad), thesis n = 3, 0.325.
         tries: initial yaws spread evenly over 360°, solved as one batch (1 = start from ``R_init``).
         reference_samples: precomputed ``mpp_samples(reference)[1]`` to reuse over a sequence.
-        grid_height: tabulate ``G_cur`` on a ``grid_height x 2 grid_height`` grid (0 = exact sums).
+        grid_height: tabulate ``G_cur`` on a ``grid_height x 2 grid_height`` grid (:func:`mpp_table`, read
+            bilinearly); 0 = the exact sums of :func:`mpp_field` at the rotated centres in every iteration.
         max_iter, tol: Gauss-Newton stops when every yaw step is below ``tol`` rad or after ``max_iter``.
-        impl: ``"fast"`` (the table from cached kernels, :func:`mpp_table_fast`; the rotated centres and
-            Jacobian directions of all starts as one ``(B, T, 3) x (B, 3, 6N)`` product per iteration, read
-            as component rows; ``J.J``, ``J.e``, ``e.e`` from one small product; buffers allocated once:
-            see :func:`_mpp_fast`) or ``"reference"`` (the original evaluation); equal up to rounding.
-            With ``grid_height=0`` both run the reference loop (``acos`` near 1 amplifies float32 rounding
-            of the rotated points, so no reformulation of it reproduces its digits).
         reference_field: ``mpp_vertex_field(X, reference_samples, lambda_g)`` ``(B|1, N)`` prepared once per
-            reference (``impl="fast"`` only; then ``reference`` and ``reference_samples`` are not read).
+            reference (then ``reference`` and ``reference_samples`` are not read).
     Returns:
         :class:`MPPResult` with ``rotation = exp(yaw [axis]x) R_init``.
     """
-    if impl not in ("fast", "reference"):
-        raise ValueError(f"mpp_yaw: impl must be 'fast' or 'reference', got {impl!r}")
     B = current.shape[0]
     dtype = current.dtype if current.dtype == torch.float64 else torch.float32
     current = current.to(dtype)
@@ -229,72 +211,32 @@ def mpp_yaw(current: Tensor, reference: Tensor, R_init: Tensor | None = None, ax
     R0 = eye.expand(B, 3, 3) if R_init is None else R_init.to(dtype).expand(B, 3, 3)
     a = torch.tensor([0.0, 1.0, 0.0], dtype=dtype, device=current.device) if axis is None else axis.to(dtype)
     a = (a / a.norm(dim=-1, keepdim=True)).expand(B, 3)
-    if impl == "fast" and grid_height > 0:  # the exact sums (grid_height=0) keep the reference loop: float32
-        # the samples as the reference path computes them: the yaw is the evaluated angle of least cost, and
-        # near convergence two angles ~1e-5 apart have costs equal to rounding, so a perturbation of the
-        # samples of 1e-8 (a GEMM blur) can flip the pick (the loop below perturbs the costs much less)
-        X, Ic = mpp_samples(current, level, prefilter)
-        if reference_field is None:
-            Ir = mpp_samples(reference.to(dtype), level, prefilter)[1] if reference_samples is None else \
-                reference_samples.to(dtype)
-            reference_field = mpp_vertex_field(X, Ir, lambda_g)
-        G_ref = reference_field.to(dtype).expand(B, X.shape[0])
-        return _mpp_fast(X, Ic, G_ref, R0, a, lambda_g, tries, max_iter, tol, grid_height)
+    # the samples by sample_panorama of the prefiltered image: the yaw is the evaluated angle of least cost, and
+    # near convergence two angles ~1e-5 apart have costs equal to rounding, so a perturbation of the samples of
+    # 1e-8 (a GEMM blur) can flip the pick (the loop below perturbs the costs much less)
     X, Ic = mpp_samples(current, level, prefilter)
-    if reference_samples is None:
-        _, Ir = mpp_samples(reference.to(dtype), level, prefilter)
-    else:
-        Ir = reference_samples.to(dtype)
-    if Ir.shape[0] == 1 and B > 1:
-        Ir = Ir.expand(B, -1)
-    G_ref, _ = mpp_field(X, Ir, X.unsqueeze(0), lambda_g)  # (B, M)
-    T = max(1, int(tries))
-    theta = (torch.arange(T, dtype=dtype, device=current.device) * (2 * math.pi / T)).expand(B, T).clone()
-    theta = torch.remainder(theta + math.pi, 2 * math.pi) - math.pi
-    best_cost = torch.full((B, T), float("inf"), dtype=dtype, device=current.device)
-    best_theta = theta.clone()
-    table = mpp_table(X, Ic, lambda_g, grid_height) if grid_height > 0 else None
-    it = 0
-    for it in range(1, max_iter + 1):
-        R = apply_update(R0.unsqueeze(1), theta[..., None] * a.unsqueeze(1))  # (B, T, 3, 3)
-        p = torch.einsum("btji,mj->btmi", R, X)  # R.T s_g
-        if table is None:
-            G, grad = mpp_field(X, Ic, p, lambda_g, with_grad=True)  # (B, T, M), (B, T, M, 3)
-        else:
-            v = sample_panorama(table, p.reshape(B, -1, 3)).reshape(B, 4, T, -1)
-            G, grad = v[:, 0], v[:, 1:].permute(0, 2, 3, 1)
-        e = G - G_ref.unsqueeze(1)
-        cost = (e * e).sum(-1)
-        better = cost < best_cost
-        best_cost = torch.where(better, cost, best_cost)
-        best_theta = torch.where(better, theta, best_theta)
-        J = (rotation_jacobian(grad, R, X) * a[:, None, None, :]).sum(-1)  # (B, T, M)
-        step = -(J * e).sum(-1) / (J * J).sum(-1).clamp_min(1e-30)
-        step = step.clamp(-0.5, 0.5)  # at most ~29° per iteration
-        theta = theta + step
-        if bool((step.abs() < tol).all()):
-            break
-    k = best_cost.argmin(-1)
-    yaw = best_theta.gather(1, k[:, None])[:, 0]
-    yaw = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
-    R = apply_update(R0, yaw[:, None] * a)
-    return MPPResult(R, yaw, best_cost.gather(1, k[:, None])[:, 0], it)
+    if reference_field is None:
+        Ir = mpp_samples(reference.to(dtype), level, prefilter)[1] if reference_samples is None else \
+            reference_samples.to(dtype)
+        reference_field = mpp_vertex_field(X, Ir, lambda_g)
+    G_ref = reference_field.to(dtype).expand(B, X.shape[0])
+    return _mpp_loop(X, Ic, G_ref, R0, a, lambda_g, tries, max_iter, tol, grid_height)
 
 
-def _mpp_fast(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambda_g: float, tries: int, max_iter: int,
-              tol: float, grid_height: int) -> MPPResult:
-    """The Gauss-Newton loop of :func:`mpp_yaw` in one native call (:func:`native_terms.mpp_yaw_loop`), else in
-    ~35 ops per iteration (:func:`_mpp_loop`); same arithmetic up to rounding.
+def _mpp_loop(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambda_g: float, tries: int,
+              max_iter: int, tol: float, grid_height: int) -> MPPResult:
+    """The Gauss-Newton loop of :func:`mpp_yaw`, ~35 ops per iteration for all starts.
 
     ``R(theta) = E(theta) R0`` with ``E = I + sin K + (1 - cos) K^2`` (Rodrigues, ``K = [a]x``), so the rotated
     centres ``p = X @ R`` and the Jacobian directions ``D = (X x a) @ R`` (``J = grad . D``) are
     ``P0 + sin P1 + (1 - cos) P2`` with ``P0..P2`` computed once: per iteration one ``(B, T, 3) x (B, 3, 6N)``
-    product gives all starts' points and directions as component rows (contiguous reads)."""
+    product gives all starts' points and directions as component rows (contiguous reads); ``G`` and its gradient
+    are read there from the table (or summed exactly), ``J.J``, ``J.e``, ``e.e`` come from one small product, in
+    buffers allocated once."""
     B, dtype, dev = Ic.shape[0], Ic.dtype, Ic.device
     T = max(1, int(tries))
     theta = (torch.arange(T, dtype=dtype, device=dev) * (2 * math.pi / T)).expand(B, T).clone()
     theta = torch.remainder(theta + math.pi, 2 * math.pi) - math.pi
-    table = mpp_table_fast(X, Ic, lambda_g, grid_height)
     M = X.shape[0]
     zero = torch.zeros_like(a[:, 0])
     K = torch.stack([zero, -a[:, 2], a[:, 1], a[:, 2], zero, -a[:, 0], -a[:, 1], a[:, 0], zero], -1).view(B, 3, 3)
@@ -303,26 +245,14 @@ def _mpp_fast(X: Tensor, Ic: Tensor, G_ref: Tensor, R0: Tensor, a: Tensor, lambd
     # (B, 3, 6M): for each of P0, P1, P2 the x, y, z rows of p, then those of D
     basis = torch.stack([(XC @ m).view(B, 2, M, 3).permute(0, 1, 3, 2) for m in (R0, KR0, K2R0)], 1)
     basis = basis.reshape(B, 3, 6 * M)
-    if native_terms.applies(table, basis, G_ref, theta):  # the loop below in one call
-        best_theta, best_cost, it = native_terms.mpp_yaw_loop(table, basis, G_ref, theta, max_iter, tol)
+    if grid_height > 0:
+        read = SphereImage(mpp_table(X, Ic, lambda_g, grid_height)).read_grid
     else:
-        best_theta, best_cost, it = _mpp_loop(SphereImage(table), basis, G_ref, theta, max_iter, tol)
-    k = best_cost.argmin(-1)
-    yaw = best_theta.gather(1, k[:, None])[:, 0]
-    yaw = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
-    R = rodrigues(yaw[:, None] * a) @ R0
-    return MPPResult(R, yaw, best_cost.gather(1, k[:, None])[:, 0], it)
-
-
-def _mpp_loop(table: SphereImage, basis: Tensor, G_ref: Tensor, theta: Tensor, max_iter: int,
-              tol: float) -> tuple[Tensor, Tensor, int]:
-    """:func:`_mpp_fast`'s iterations in tensor ops (:func:`native_terms.mpp_yaw_loop`'s arguments and results)."""
-    B, T = theta.shape
-    M = basis.shape[-1] // 6
-    dtype, dev = theta.dtype, theta.device
+        def read(x: Tensor, y: Tensor, z: Tensor) -> Tensor:  # the exact sums at the points
+            G, grad = mpp_field(X, Ic, torch.stack([x, y, z], -1), lambda_g, with_grad=True)  # (B, T, M), (.., 3)
+            return torch.cat([G.unsqueeze(1), grad.permute(0, 3, 1, 2)], 1)
     best_cost = torch.full((B, T), float("inf"), dtype=dtype, device=dev)
     best_theta = theta.clone()
-    G_ref = G_ref.unsqueeze(1)  # (B, 1, M)
     # buffers written in place every iteration, and their views, made once (a view costs as much as a small op)
     k = torch.ones(B, T, 3, dtype=dtype, device=dev)  # [1, sin theta, 1 - cos theta] per start
     k_sin, k_cos = k[..., 1], k[..., 2]
@@ -334,12 +264,13 @@ def _mpp_loop(table: SphereImage, basis: Tensor, G_ref: Tensor, theta: Tensor, m
     S = torch.empty(B * T, 2, 2, dtype=dtype, device=dev)
     JJ, Je, _, ee = S.view(B, T, 4).unbind(-1)  # J.J, J.e, e.J, e.e
     jeT = je.transpose(1, 2)
+    G_ref = G_ref.unsqueeze(1)  # (B, 1, M)
     it = 0
     for it in range(1, max_iter + 1):
         torch.sin(theta, out=k_sin)
         torch.cos(theta, out=k_cos).neg_().add_(1.0)  # 1 - cos, exactly
         torch.bmm(k, basis, out=pd)
-        v = table.read_grid(*p_xyz).view(B, 4, T, M)
+        v = read(*p_xyz).view(B, 4, T, M)
         torch.sum(v[:, 1:] * D, 1, out=J_out)  # J = grad . D
         torch.sub(v[:, 0], G_ref, out=e_out)  # e = G - G_ref
         torch.bmm(je, jeT, out=S)
@@ -350,4 +281,8 @@ def _mpp_loop(table: SphereImage, basis: Tensor, G_ref: Tensor, theta: Tensor, m
         theta = theta - q
         if bool(q.abs().max() < tol):
             break
-    return best_theta, best_cost, it
+    k = best_cost.argmin(-1)
+    yaw = best_theta.gather(1, k[:, None])[:, 0]
+    yaw = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
+    R = rodrigues(yaw[:, None] * a) @ R0
+    return MPPResult(R, yaw, best_cost.gather(1, k[:, None])[:, 0], it)

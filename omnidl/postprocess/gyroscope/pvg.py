@@ -21,68 +21,18 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from omnidl.geometry.panorama import sample_panorama
-
-from . import native_terms
 from .icosahedron import icosahedron_vertices
-from .photometric import (SphereImage, apply_update, blur, blur_fast, damped_step, gauss_newton_step, rodrigues,
-                          rotation_jacobian, to_gray)
-
-
-def tangent_basis(p: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit tangent vectors ``(..., 3)`` orthogonal to unit ``p (..., 3)`` and to each other."""
-    ex = torch.zeros_like(p)
-    ex[..., 0] = 1
-    ey = torch.zeros_like(p)
-    ey[..., 1] = 1
-    a = torch.where((p[..., :1].abs() < 0.9), ex, ey)
-    t1 = torch.linalg.cross(a, p, dim=-1)
-    t1 = t1 / t1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return t1, torch.linalg.cross(p, t1, dim=-1)
-
-
-def spherical_gradient(image: Tensor, p: Tensor, h: float | None = None) -> tuple[Tensor, Tensor]:
-    """Values ``(B, N)`` and ambient (tangent) gradients ``(B, N, 3)`` of ``image (B, 1, H, W)`` at unit
-    directions ``p (B, N, 3)``, by central differences of bilinear reads ``h`` radians apart."""
-    H = image.shape[-2]
-    h = math.pi / H if h is None else h
-    t1, t2 = tangent_basis(p)
-    pts = torch.stack([p, p + h * t1, p - h * t1, p + h * t2, p - h * t2], 1)  # (B, 5, N, 3)
-    pts = pts / pts.norm(dim=-1, keepdim=True)
-    B, _, N, _ = pts.shape
-    v = sample_panorama(image, pts.reshape(B, -1, 3))[:, 0].reshape(B, 5, N)
-    # chord length of a tangent step of h after normalisation: 2 * sin(atan(h)) / ... ~ arc atan(h)
-    step = 2 * math.atan(h)
-    grad = ((v[:, 1] - v[:, 2]) / step)[..., None] * t1 + ((v[:, 3] - v[:, 4]) / step)[..., None] * t2
-    return v[:, 0], grad
-
-
-def spherical_gradient_fast(image: SphereImage, p: Tensor, h: float | None = None) -> tuple[Tensor, Tensor]:
-    """:func:`spherical_gradient` of a prepared :class:`SphereImage` (same tangent basis, same five reads;
-    the offset points are not re-normalised since the reads only depend on the direction)."""
-    h = math.pi / image.H if h is None else h
-    px, py, pz = p.unbind(-1)
-    use_x = px.abs() < 0.9  # a = e_x: a x p = (0, -pz, py); a = e_y: a x p = (pz, 0, -px)
-    zero = torch.zeros_like(px)
-    t1 = torch.stack([torch.where(use_x, zero, pz), torch.where(use_x, -pz, zero), torch.where(use_x, py, -px)], -1)
-    t1 = t1 / t1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    t2 = torch.linalg.cross(p, t1, dim=-1)
-    ht1, ht2 = h * t1, h * t2
-    pts = torch.stack([p, p + ht1, p - ht1, p + ht2, p - ht2], 1)  # (B, 5, N, 3)
-    B, _, N, _ = pts.shape
-    v = image.read(pts.view(B, 5 * N, 3))[:, 0].view(B, 5, N)
-    step = 2 * math.atan(h)
-    grad = ((v[:, 1] - v[:, 2]) / step)[..., None] * t1 + ((v[:, 3] - v[:, 4]) / step)[..., None] * t2
-    return v[:, 0], grad
+from .photometric import SphereImage, blur_fast, damped_step, rodrigues, to_gray
 
 
 class PVGTerms:
     """The per-iteration terms of PVG for ``B`` rotations of the vertices ``X (N, 3)``, in buffers allocated once.
 
     ``terms(image, R, I_ref)`` -> ``(B, 4, N)``: the rows ``u = grad x p`` (3) and the residual
-    ``I_cur(p) - I_ref`` (1) at the points ``p = R.T X`` (kept as component rows ``(B, 3, N)``). The same five
-    reads as :func:`spherical_gradient` (tangent basis of :func:`tangent_basis`, offsets ``+-h t``), so with
-    ``grad = g1 t1 + g2 t2`` and ``t2 = p x t1``: ``grad x p = g2 t1 - g1 t2``. The Jacobian of
+    ``I_cur(p) - I_ref`` (1) at the points ``p = R.T X`` (kept as component rows ``(B, 3, N)``). The spherical
+    gradient from five reads: ``p`` and ``p +- h t1``, ``p +- h t2`` with the tangent basis
+    ``t1 = a x p / |a x p|`` (``a = e_x`` where ``|p_x| < 0.9``, else ``e_y``), ``t2 = p x t1``, central
+    differences over ``2 atan(h)``; so with ``grad = g1 t1 + g2 t2``: ``grad x p = g2 t1 - g1 t2``. The Jacobian of
     :func:`pvg_refine` is then ``(R grad) x X = R (grad x p)`` (``X = R p``): rows ``R u``, and
     ``J^T J = R (U U^T) R^T``, ``J^T e = R U e`` come from one ``(4, N) x (N, 4)`` product of the output.
     The output is overwritten by the next call.
@@ -138,7 +88,7 @@ class PVGTerms:
 
 def pvg_reference_values(reference: Tensor, level: int = 5, blur_px: Sequence[float] = (4.0, 1.5, 0.5)) -> Tensor:
     """``(S, B, N)`` grey levels of ``reference (B, 3|1, H, W)`` at the level-``level`` vertices after each of
-    the ``S`` blurs: what :func:`pvg_refine` (``impl="fast"``) compares with, to prepare once per reference
+    the ``S`` blurs: what :func:`pvg_refine` compares with, to prepare once per reference
     (``reference_values=``)."""
     dtype = reference.dtype if reference.dtype == torch.float64 else torch.float32
     ref = to_gray(reference.to(dtype))
@@ -156,9 +106,12 @@ class PVGResult:
 
 def pvg_refine(current: Tensor, reference: Tensor, R_init: Tensor | None = None, level: int = 5,
                max_iter: int = 30, tol: float = 1e-6, blur_px: Sequence[float] = (4.0, 1.5, 0.5),
-               dofs: Sequence[bool] = (True, True, True), impl: str = "fast",
-               reference_values: Tensor | None = None) -> PVGResult:
+               dofs: Sequence[bool] = (True, True, True), reference_values: Tensor | None = None) -> PVGResult:
     """Refine ``R_ref_cur`` so that ``current`` read at ``R.T X`` matches ``reference`` at ``X``.
+
+    Per blur stage both images are blurred (:func:`blur_fast`), the current one prepared once for reads
+    (:class:`SphereImage`), and each Gauss-Newton iteration takes the points and Jacobian rows as ``(B, 3, N)``
+    component rows in buffers allocated once, ``J^T J`` and ``J^T e`` from one small product (:class:`PVGTerms`).
 
     Args:
         current, reference: ``(B, 3|1, H, W)`` equirect images (``reference`` may have batch 1).
@@ -166,89 +119,47 @@ def pvg_refine(current: Tensor, reference: Tensor, R_init: Tensor | None = None,
         max_iter, tol: per blur stage; stop when every update is below ``tol`` rad.
         blur_px: coarse-to-fine Gaussian blurs (pixels) of both images; ``(0,)`` = raw images only.
         dofs: which rotation axes (reference frame x, y, z) are optimised.
-        impl: ``"fast"`` (blurs as cached-matrix GEMMs, images prepared once per stage, the points and
-            Jacobian rows as ``(B, 3, N)`` component rows in buffers allocated once, ``J^T J`` and ``J^T e``
-            from one small product, see :class:`PVGTerms`; ~3x fewer CPU-ms per iteration) or ``"reference"``
-            (the original per-iteration :func:`sample_panorama` path); equal up to float rounding.
         reference_values: ``pvg_reference_values(reference, level, blur_px)`` prepared once per reference
-            (``impl="fast"`` only; ``reference`` is then not read).
+            (``reference`` is then not read).
     Returns:
         :class:`PVGResult`.
     """
-    if impl not in ("fast", "reference"):
-        raise ValueError(f"pvg_refine: impl must be 'fast' or 'reference', got {impl!r}")
     dtype = current.dtype if current.dtype == torch.float64 else torch.float32
     cur = to_gray(current.to(dtype))
     B = cur.shape[0]
     X = icosahedron_vertices(level, dtype, cur.device)
     R = (torch.eye(3, dtype=dtype, device=cur.device) if R_init is None else R_init.to(dtype)).expand(B, 3, 3).clone()
-    if impl == "fast":
-        if reference_values is None:
-            reference_values = pvg_reference_values(reference, level, blur_px)
-        elif reference_values.shape[0] != len(blur_px) or reference_values.shape[-1] != X.shape[0]:
-            raise ValueError(f"pvg_refine: reference_values {tuple(reference_values.shape)} do not fit "
-                             f"{len(blur_px)} blur stages x {X.shape[0]} vertices (level {level})")
-        return _pvg_fast(cur, reference_values.to(dtype), X, R, tuple(bool(d) for d in dofs), max_iter, tol, blur_px)
-    ref = to_gray(reference.to(dtype))
-    if ref.shape[0] == 1 and B > 1:
-        ref = ref.expand(B, -1, -1, -1)
-    mask = torch.tensor([bool(d) for d in dofs], device=cur.device)
-    it_total = 0
-    cost = torch.zeros(B, dtype=dtype, device=cur.device)
-    for sigma in blur_px:
-        c_img, r_img = blur(cur, sigma), blur(ref, sigma)
-        I_ref = sample_panorama(r_img, X)[:, 0]  # (B, N)
-        for _ in range(max_iter):
-            it_total += 1
-            p = torch.einsum("bji,nj->bni", R, X)
-            I_cur, grad = spherical_gradient(c_img, p)
-            e = I_cur - I_ref
-            cost = (e * e).mean(-1)
-            J = rotation_jacobian(grad, R, X)[..., mask]  # (B, N, D)
-            dx = gauss_newton_step(J, e)
-            w = torch.zeros(B, 3, dtype=dtype, device=cur.device)
-            w[:, mask] = dx
-            n = w.norm(dim=-1, keepdim=True)
-            w = w * (0.35 / n).clamp(max=1.0)  # trust region: at most 20° per step
-            R = apply_update(R, w)
-            if bool((n < tol).all()):
-                break
-    return PVGResult(R, cost, it_total)
+    if reference_values is None:
+        reference_values = pvg_reference_values(reference, level, blur_px)
+    elif reference_values.shape[0] != len(blur_px) or reference_values.shape[-1] != X.shape[0]:
+        raise ValueError(f"pvg_refine: reference_values {tuple(reference_values.shape)} do not fit "
+                         f"{len(blur_px)} blur stages x {X.shape[0]} vertices (level {level})")
+    return _pvg_stages(cur, reference_values.to(dtype), X, R, tuple(bool(d) for d in dofs), max_iter, tol, blur_px)
 
 
-def _pvg_fast(cur: Tensor, ref_values: Tensor, X: Tensor, R: Tensor, dofs: tuple[bool, ...], max_iter: int, tol: float,
-              blur_px: Sequence[float]) -> PVGResult:
-    """The Gauss-Newton loop of :func:`pvg_refine` on :class:`PVGTerms` (same arithmetic up to rounding):
-    ``J^T J = R M R^T``, ``J^T e = R c`` with ``[M c; c^T e^T e] = T T^T``, ``T = PVGTerms(...)(...)``; the sums
-    ``T T^T`` in one native pass where it applies (:func:`native_terms.pvg_normal_equations`), and with all three axes
-    free a whole stage in one native call (:func:`native_terms.pvg_stage`)."""
+def _pvg_stages(cur: Tensor, ref_values: Tensor, X: Tensor, R: Tensor, dofs: tuple[bool, ...], max_iter: int,
+                tol: float, blur_px: Sequence[float]) -> PVGResult:
+    """The Gauss-Newton loop of :func:`pvg_refine` on :class:`PVGTerms`: ``J^T J = R M R^T``, ``J^T e = R c`` with
+    ``[M c; c^T e^T e] = T T^T``, ``T = PVGTerms(...)(...)``; with all three axes free the damped solve runs in the
+    frame of the points (``A + l I = R (M + l I) R^T``)."""
     B, dtype, dev = cur.shape[0], cur.dtype, cur.device
     sel = [i for i, d in enumerate(dofs) if d]
     all_dofs = len(sel) == 3
     eye9 = 1e-9 * torch.eye(3, dtype=dtype, device=dev)  # damped_step's damping (all three axes)
-    use_native = native_terms.applies(cur, ref_values, X)
-    terms = None if use_native else PVGTerms(X, B)
+    terms = PVGTerms(X, B)
     Q = torch.empty(B, 4, 4, dtype=dtype, device=dev)
-    QT = None if use_native else terms.out.transpose(1, 2)
+    QT = terms.out.transpose(1, 2)
     M, c = Q[:, :3, :3], Q[:, :3, 3]
     diag = torch.diagonal(M, dim1=-2, dim2=-1)
     it_total = 0
     for s, sigma in enumerate(blur_px):
         blurred = blur_fast(cur, sigma)
-        img = None if use_native else SphereImage(blurred)
+        img = SphereImage(blurred)
         I_ref = ref_values[s]
         h = math.pi / blurred.shape[-2]
-        if use_native and all_dofs:  # the loop below in one call
-            R, Qd, it = native_terms.pvg_stage(blurred, R, X, I_ref, h, max_iter, tol)
-            Q.copy_(Qd)
-            it_total += it
-            continue
         for _ in range(max_iter):
             it_total += 1
-            if use_native:  # [U U^T, U e; e U^T, e e] in one pass
-                Q.copy_(native_terms.pvg_normal_equations(blurred, R, X, I_ref, h))
-            else:
-                torch.bmm(terms(img, R, I_ref, h), QT, out=Q)
+            torch.bmm(terms(img, R, I_ref, h), QT, out=Q)
             if all_dofs:  # A + l I = R (M + l I) R.T (trace-invariant damping): solve in the frame of the points
                 scale = diag.mean(-1, keepdim=True).clamp_min_(1e-30)
                 y = torch.linalg.solve(torch.addcmul(M, scale.unsqueeze(-1), eye9), c)  # dx = -R y

@@ -1,5 +1,6 @@
-"""The fast gyroscope paths (prepared sphere images, cached MPP kernels, fused Gauss-Newton loops) give the
-reference implementation's results: 1e-5 in float32, 1e-12 in float64."""
+"""The gyroscope's solvers (prepared sphere images, cached MPP kernels, Gauss-Newton loops in buffers allocated once)
+give the results of the reference implementations (``tests/reference/gyroscope.py``): 1e-5 in float32, 1e-12 in
+float64."""
 import math
 
 import pytest
@@ -9,11 +10,12 @@ from omnidl.geometry.panorama import sample_panorama
 from omnidl.geometry.rotations import random_tilt_rotation
 from omnidl.postprocess.gyroscope.icosahedron import icosahedron_vertices
 from omnidl.postprocess.gyroscope.mpp import mpp_field, mpp_table, mpp_vertex_field, mpp_yaw
-from omnidl.postprocess.gyroscope.photometric import (SphereImage, apply_update, rodrigues, rotation_jacobian,
-                                                      yaw_rotations)
-from omnidl.postprocess.gyroscope.pvg import pvg_refine, spherical_gradient, spherical_gradient_fast
+from omnidl.postprocess.gyroscope.photometric import SphereImage, rodrigues
+from omnidl.postprocess.gyroscope.pvg import pvg_refine
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 from omnidl.utils.threads import limit_threads
+from tests.reference.gyroscope import (apply_update, blur, mpp_table_reference, mpp_yaw_reference,
+                                       pvg_refine_reference, rotation_jacobian, spherical_gradient)
 
 TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 
@@ -23,37 +25,6 @@ def _frames(dtype, size=(64, 128), n=2):
     ref = procedural_panorama(None, *size, seed=1).to(dtype)
     cur = procedural_panorama(R, *size, seed=1).to(dtype)
     return R.to(dtype), ref, cur
-
-
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_sphere_image_reads_like_sample_panorama(dtype):
-    g = torch.Generator().manual_seed(0)
-    img = procedural_panorama(None, 32, 64, seed=3).to(dtype).expand(2, -1, -1, -1)
-    d = torch.randn(2, 300, 3, generator=g, dtype=dtype)
-    poles = torch.tensor([[0, 1.0, 0], [0, -1.0, 0], [1e-17, 1, 0], [0, 0, -1], [-1e-7, 0, -1]], dtype=dtype)
-    d = torch.cat([d, icosahedron_vertices(3, dtype)[None].expand(2, -1, -1), poles[None].expand(2, -1, -1)], 1)
-    torch.testing.assert_close(SphereImage(img).read(d), sample_panorama(img, d), rtol=0, atol=TOL[dtype])
-
-
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_yaw_rotations_match_apply_update(dtype):
-    g = torch.Generator().manual_seed(1)
-    R0 = torch.linalg.qr(torch.randn(2, 3, 3, generator=g, dtype=dtype))[0]
-    a = torch.nn.functional.normalize(torch.randn(2, 3, generator=g, dtype=dtype), dim=-1)
-    th = torch.randn(2, 4, generator=g, dtype=dtype)
-    expect = apply_update(R0.unsqueeze(1), th[..., None] * a.unsqueeze(1))
-    torch.testing.assert_close(yaw_rotations(R0, a, th), expect, rtol=0, atol=TOL[dtype])
-
-
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_spherical_gradient_fast_matches(dtype):
-    _, ref, _ = _frames(dtype)
-    gray = ref.mean(1, keepdim=True)
-    p = icosahedron_vertices(3, dtype)[None]
-    v0, g0 = spherical_gradient(gray, p)
-    v1, g1 = spherical_gradient_fast(SphereImage(gray), p)
-    torch.testing.assert_close(v1, v0, rtol=0, atol=TOL[dtype])
-    torch.testing.assert_close(g1, g0, rtol=0, atol=100 * TOL[dtype])  # differences of reads / 2 atan(h)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -76,10 +47,10 @@ def test_mpp_table_and_vertex_field_match_mpp_field(dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("kw", [dict(tries=4), dict(tries=1), dict(tries=1, grid_height=0, max_iter=6)])
-def test_mpp_fast_matches_reference(dtype, kw):
+def test_mpp_matches_reference(dtype, kw):
     R, ref, cur = _frames(dtype)
-    fast = mpp_yaw(cur, ref, R, level=2, impl="fast", **kw)
-    slow = mpp_yaw(cur, ref, R, level=2, impl="reference", **kw)
+    fast = mpp_yaw(cur, ref, R, level=2, **kw)
+    slow = mpp_yaw_reference(cur, ref, R, level=2, **kw)
     tol = TOL[dtype]
     torch.testing.assert_close(fast.yaw, slow.yaw, rtol=0, atol=tol)
     torch.testing.assert_close(fast.rotation, slow.rotation, rtol=0, atol=tol)
@@ -88,27 +59,19 @@ def test_mpp_fast_matches_reference(dtype, kw):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("start", ["near", "identity"])
-def test_pvg_fast_matches_reference(dtype, start):
+def test_pvg_matches_reference(dtype, start):
     R, ref, cur = _frames(dtype)
     R0 = R if start == "near" else None
-    fast = pvg_refine(cur, ref, R0, level=3, max_iter=8, impl="fast")
-    slow = pvg_refine(cur, ref, R0, level=3, max_iter=8, impl="reference")
+    fast = pvg_refine(cur, ref, R0, level=3, max_iter=8)
+    slow = pvg_refine_reference(cur, ref, R0, level=3, max_iter=8)
     tol = TOL[dtype]
     assert fast.iterations == slow.iterations
     torch.testing.assert_close(fast.rotation, slow.rotation, rtol=0, atol=tol)
     torch.testing.assert_close(fast.cost, slow.cost, rtol=0, atol=tol)
     partial = dict(dofs=(False, True, False), blur_px=(1.0,))
-    torch.testing.assert_close(pvg_refine(cur, ref, R0, level=3, max_iter=5, impl="fast", **partial).rotation,
-                               pvg_refine(cur, ref, R0, level=3, max_iter=5, impl="reference", **partial).rotation,
+    torch.testing.assert_close(pvg_refine(cur, ref, R0, level=3, max_iter=5, **partial).rotation,
+                               pvg_refine_reference(cur, ref, R0, level=3, max_iter=5, **partial).rotation,
                                rtol=0, atol=tol)
-
-
-def test_bad_impl_names():
-    _, ref, cur = _frames(torch.float32, n=1)
-    with pytest.raises(ValueError, match="impl must be 'fast' or 'reference', got 'gpu'"):
-        mpp_yaw(cur, ref, impl="gpu")
-    with pytest.raises(ValueError, match="impl must be 'fast' or 'reference', got 'gpu'"):
-        pvg_refine(cur, ref, impl="gpu")
 
 
 def test_limit_threads_restores():
@@ -132,7 +95,7 @@ def test_rodrigues_matches_apply_update(dtype):
 
 def test_pipeline_thread_policy_does_not_change_the_estimate(monkeypatch):
     """photometric_threads only changes how many intra-op threads run (1 when the CPUs are oversubscribed)."""
-    from omnidl.nn import threads as T
+    from omnidl.utils import threads as T
     from omnidl.postprocess.gyroscope.pipeline import Gyroscope, GyroscopeOptions
     R, ref, cur = _frames(torch.float32, n=1)
     before = torch.get_num_threads()
@@ -155,7 +118,7 @@ def test_pipeline_thread_policy_does_not_change_the_estimate(monkeypatch):
 
 def test_model_horizon_fn_thread_policy(monkeypatch):
     from omnidl.models import create_model
-    from omnidl.nn import threads as T
+    from omnidl.utils import threads as T
     from omnidl.postprocess.gyroscope.pipeline import model_horizon_fn
     torch.manual_seed(0)
     m = create_model("holinet", backbone="resnet18", width=0.125, conv="standard")
@@ -197,28 +160,30 @@ def test_read_xyz_reads_like_sample_panorama(dtype):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("sigma", [0.5, 1.5, 2.8, 4.0, 0.0])
 def test_blur_fast_matches_blur(dtype, sigma):
-    from omnidl.postprocess.gyroscope.photometric import blur, blur_fast
+    from omnidl.postprocess.gyroscope.photometric import blur_fast
     img = torch.rand(2, 1, 16, 32, generator=torch.Generator().manual_seed(5), dtype=dtype)
     torch.testing.assert_close(blur_fast(img, sigma), blur(img, sigma), rtol=0, atol=TOL[dtype])
     small = torch.rand(1, 1, 4, 8, generator=torch.Generator().manual_seed(6), dtype=dtype)  # radius > W:
-    for fn in (blur, blur_fast):  # blur_fast falls back to blur, which cannot wrap more than once
-        with pytest.raises(RuntimeError):
-            fn(small, 4.0)
+    with pytest.raises(RuntimeError):  # the padded convolutions cannot wrap more than once
+        blur(small, 4.0)
+    if sigma:  # the matrices wrap the taps around as often as needed: still a weighted mean
+        flat = blur_fast(torch.full_like(small, 0.3), sigma * 4)
+        torch.testing.assert_close(flat, torch.full_like(small, 0.3), rtol=0, atol=TOL[dtype])
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("height", [16, 15])  # 16: the octant kernels + 8 sign flips in float32; 15: no octant
-def test_mpp_table_fast_matches_mpp_table(dtype, height):
-    from omnidl.postprocess.gyroscope.mpp import _symmetric_kernels, mpp_table_fast
+def test_mpp_table_matches_the_full_kernels(dtype, height):
+    from omnidl.postprocess.gyroscope.mpp import _symmetric_kernels
     X = icosahedron_vertices(2, dtype)
     I = torch.rand(3, X.shape[0], generator=torch.Generator().manual_seed(7), dtype=dtype)
     I = I / I.sum(-1, keepdim=True)
-    expect = mpp_table(X, I, 0.325, height)
+    expect = mpp_table_reference(X, I, 0.325, height)
     scale = expect.abs().max()
-    torch.testing.assert_close(mpp_table_fast(X, I, 0.325, height) / scale, expect / scale, rtol=0, atol=TOL[dtype])
+    torch.testing.assert_close(mpp_table(X, I, 0.325, height) / scale, expect / scale, rtol=0, atol=TOL[dtype])
     assert (_symmetric_kernels(2, 0.325, height, torch.float32, "cpu") is None) == (height % 2 == 1)
-    Y = X.clone()[:-1]  # not an icosahedron: the exact evaluation, as mpp_table
-    assert torch.equal(mpp_table_fast(Y, I[:, :-1], 0.325, 16), mpp_table(Y, I[:, :-1], 0.325, 16))
+    Y = X.clone()[:-1]  # not an icosahedron: the exact evaluation, as the reference table
+    assert torch.equal(mpp_table(Y, I[:, :-1], 0.325, 16), mpp_table_reference(Y, I[:, :-1], 0.325, 16))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -242,7 +207,7 @@ def test_prepared_references_match(dtype):
     """pvg_reference_values / mpp_vertex_field prepared once give the results of the unprepared calls."""
     from omnidl.postprocess.gyroscope.mpp import mpp_samples
     from omnidl.postprocess.gyroscope.pvg import pvg_reference_values
-    from omnidl.postprocess.gyroscope.photometric import blur, to_gray
+    from omnidl.postprocess.gyroscope.photometric import to_gray
     R, ref, cur = _frames(dtype)
     vals = pvg_reference_values(ref, 3, (2.0, 0.5))
     X = icosahedron_vertices(3, dtype)

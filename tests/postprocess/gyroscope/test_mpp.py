@@ -5,10 +5,11 @@ import torch
 from omnidl.geometry.panorama import sample_panorama
 from omnidl.geometry.rotations import axis_angle_to_matrix, rotation_y
 from omnidl.postprocess.gyroscope.icosahedron import icosahedron_vertices
+from omnidl.geometry.rotations import random_tilt_rotation
 from omnidl.postprocess.gyroscope.mpp import abs_zn, mpp_field, mpp_table, mpp_yaw
-from omnidl.postprocess.gyroscope.photometric import rotation_jacobian
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 from omnidl.metrics.rotation import rotation_error
+from tests.reference.gyroscope import rotation_jacobian
 
 
 def test_abs_zn_normalisation():
@@ -65,3 +66,11 @@ def test_mpp_recovers_any_pure_yaw_below_3_degrees():
     res = mpp_yaw(cur, ref, level=3, lambda_g=0.325)
     err = rotation_error(rotation_y(yaw_true), res.rotation.double())
     assert err.max() < 3.0, err
+
+
+def test_mpp_without_iterations_keeps_the_starts():
+    R = random_tilt_rotation(1, math.radians(30), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ref = procedural_panorama(None, 64, 128, seed=1).float()
+    cur = procedural_panorama(R, 64, 128, seed=1).float()
+    r = mpp_yaw(cur, ref, R.float(), level=2, tries=4, max_iter=0)
+    assert r.iterations == 0 and torch.isinf(r.cost).all()

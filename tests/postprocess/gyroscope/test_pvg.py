@@ -4,9 +4,10 @@ import torch
 
 from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.geometry.rotations import axis_angle_to_matrix, random_tilt_rotation
-from omnidl.postprocess.gyroscope.pvg import pvg_refine, spherical_gradient, tangent_basis
+from omnidl.postprocess.gyroscope.pvg import pvg_refine
 from omnidl.postprocess.gyroscope.scene import procedural_panorama
 from omnidl.metrics.rotation import rotation_error
+from tests.reference.gyroscope import spherical_gradient, tangent_basis
 
 
 def test_spherical_gradient_of_a_linear_function():
@@ -37,3 +38,16 @@ def test_pvg_refines_10_degree_perturbations_below_0_2_degrees():
     assert rotation_error(R_gt, R0).min() > 9.9
     assert err.max() < 0.2, err
     assert torch.isfinite(res.cost).all()
+
+
+def test_non_finite_inputs_give_nan_not_a_plausible_answer():
+    R = random_tilt_rotation(1, math.radians(30), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    R = R.float()
+    ref = procedural_panorama(None, 64, 128, seed=1).float()
+    cur = procedural_panorama(R.double(), 64, 128, seed=1).float()
+    bad = cur.clone()
+    bad[..., 10, 20] = float("nan")
+    assert torch.isnan(pvg_refine(bad, ref, R, level=3, max_iter=3).cost).all()
+    Rn = R.clone()
+    Rn[0, 0, 0] = float("nan")
+    assert torch.isnan(pvg_refine(cur, ref, Rn, level=3, max_iter=3).rotation).all()
