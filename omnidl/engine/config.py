@@ -61,8 +61,14 @@ class TrainerConfig:
     amp: bool = False                  # autocast (bfloat16 on CPU, float16 + GradScaler on CUDA)
     grad_clip: float = 0.0             # max gradient norm (0: off)
     seed: int = 0
-    num_threads: int = 0               # torch intra-op threads (0: leave torch's default)
+    # torch intra-op threads, decided once at the start of a run (omnidl.engine.seed.resolve_num_threads):
+    # auto: torch's default count when every one of those threads has a free CPU, else as many as there are
+    # free CPUs (at least 1), from the runnable tasks in /proc/loadavg; N > 0: N threads; 0: torch's default
+    num_threads: Any = "auto"          # auto | 0 | N (Any: the schema takes both; check_num_threads validates)
     deterministic: bool = False        # torch.use_deterministic_algorithms
+    # torch.compile(model) (Inductor, default mode) for the training step; checkpoints keep the plain model's
+    # state dict, validation runs the plain model; the compile time (the first step's extra time) is logged
+    compile: bool = False
     log_every_steps: int = 10
     image_every_steps: int = 0         # TensorBoard image grids on validation (0: at every validation)
     val_every_steps: int = 0           # validate every N steps (0: at the end of every epoch)
@@ -207,8 +213,26 @@ def check_trainer_config(tc: Any, optim: Any = None) -> None:
             raise bad(key, tc[key], "a finite number >= 0 (0: off)")
     if str(tc.monitor_mode) not in ("min", "max"):
         raise bad("monitor_mode", tc.monitor_mode, "'min' or 'max'")
+    check_num_threads(tc.get("num_threads", "auto"))
+    if not isinstance(tc.get("compile", False), bool):
+        raise bad("compile", tc.compile, "true or false")
     if optim is not None:
         for key in ("lr", "weight_decay"):
             v = float(optim[key])
             if not math.isfinite(v) or v < 0:
                 raise ValueError(f"optim.{key}={optim[key]!r}: expected a finite number >= 0")
+
+
+def check_num_threads(value: Any, key: str = "trainer.num_threads") -> int | str:
+    """``value`` of ``trainer.num_threads`` as ``"auto"`` or an int >= 0 (a string of digits counts as that
+    int); anything else is a ``ValueError`` naming ``key``, the value and what is expected."""
+    if isinstance(value, str):
+        v = value.strip()
+        if v.lower() == "auto":
+            return "auto"
+        if v.isdigit():
+            return int(v)
+    elif isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        return int(value)
+    raise ValueError(f"{key}={value!r}: expected 'auto' (pick from the machine's load), 0 (torch's default) "
+                     "or a positive number of intra-op threads")

@@ -62,7 +62,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(output_dir(cfg))
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "postprocess.jsonl").unlink(missing_ok=True)  # appended per batch below
-    seed_everything(int(tc.seed), int(tc.num_threads), False)
+    seed_everything(int(tc.seed), tc.num_threads, False)  # trainer.num_threads: auto | 0 | N, as in training
     device = pick_device(str(tc.device))
     cfg, model, ckpt_path = _model_from_checkpoint(cfg, device)
     run = _Evaluation(cfg, out_dir, device, model, _loader(cfg), build_metrics(cfg), build_viz(cfg),

@@ -2,8 +2,12 @@
 
 What one run does (all side effects on rank 0 only):
 
-* resets seeds and thread counts (multirun jobs share a process), joins DDP when started by ``torchrun``;
+* resets seeds and thread counts (multirun jobs share a process; ``trainer.num_threads=auto`` picks the
+  intra-op thread count from the machine's load once, at the start: :func:`.seed.resolve_num_threads`),
+  joins DDP when started by ``torchrun``;
 * builds model / datasets / loss / metrics / visualiser from the config, optimiser and per-step LR schedule;
+  with ``trainer.compile=true`` the training step calls ``torch.compile(model)`` (Inductor; :mod:`.compile`),
+  its compile time logged after the second step, while checkpoints and validation use the plain model;
 * trains for ``trainer.max_steps`` optimiser steps (or ``trainer.max_epochs`` epochs), with optional AMP,
   gradient clipping and skipping of batches with non-finite inputs or loss (:mod:`.step`);
 * validates every epoch (or every ``trainer.val_every_steps``, and every ``trainer.val_every_minutes`` of wall
@@ -43,6 +47,7 @@ from omnidl.utils.io import atomic_write_json
 from . import distributed as ddp
 from .build import build_dataset, build_loss, build_metrics, build_model, build_viz, output_dir, pick_device
 from .checkpoint import load_checkpoint
+from .compile import CompileTimer, compile_for_training
 from .config import check_trainer_config, missing_search_result
 from .hooks import ConfiguredHooks
 from .interrupt import StopRequest, TrainingInterrupted
@@ -67,7 +72,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     tc = cfg.trainer
     check_trainer_config(tc, cfg.optim)
     out_dir = Path(output_dir(cfg))
-    seed_everything(int(tc.seed), int(tc.num_threads), bool(tc.deterministic))
+    seed_everything(int(tc.seed), tc.num_threads, bool(tc.deterministic))
     device = pick_device(str(tc.device), int(os.environ.get("LOCAL_RANK", 0)))
     dist = ddp.setup(device, str(tc.distributed_backend))
     if device.type == "cuda":
@@ -102,9 +107,12 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         val_loader = DataLoader(val_ds, batch_size=bs, shuffle=False, num_workers=int(tc.num_workers),
                                 collate_fn=collate_samples, generator=val_gen)
     loop = _Loop(cfg, device, dist, opt, loss_fn, metrics, viz, ConfiguredHooks.from_config(cfg), val_loader,
-                 ckpt, logger, train_ds, sampler, steps_per_epoch, total_steps)
+                 ckpt, logger, train_ds, sampler, steps_per_epoch, total_steps,
+                 compile_timer=CompileTimer(device, enabled=dist.is_main) if bool(tc.compile) else None)
     logger.start()
     stopped_early = loop.run(state)
+    if loop.compile_timer is not None:
+        loop.compile_timer.finish()
     logger.close()
     ckpt.finish(state)
     summary = {"monitor": str(tc.monitor), "best": state.best, "best_step": state.best_step,
@@ -145,6 +153,7 @@ class _Loop:
     last_image_step: int = -10**9
     last_val_time: float = 0.0
     last_ckpt_time: float = 0.0
+    compile_timer: CompileTimer | None = None   # trainer.compile=true: times the first two steps (rank 0)
 
     def run(self, state: TrainState) -> bool:
         """Train until ``total_steps`` or early stopping (then True); Ctrl-C/SIGTERM: :meth:`_interrupt`."""
@@ -171,7 +180,12 @@ class _Loop:
             epoch_done = True
             for batch in self._epoch_loader(state):
                 state.batch_in_epoch += 1
+                timer = self.compile_timer
+                if timer is not None and timer.enabled:
+                    timer.start()
                 done = train_step(self.opt, batch, self.loss_fn, self.device, bool(tc.amp), self.dist, guard)
+                if timer is not None and timer.enabled:
+                    timer.stop(done is not None)
                 if done is None:
                     if self._stop_requested(request):
                         self._interrupt(state, request, saved=False)
@@ -293,7 +307,11 @@ def _resume(cfg: DictConfig, ckpt: Checkpointer, opt: Optimisation, device: torc
 
 
 def _model(cfg: DictConfig, device: torch.device, dist: ddp.DistInfo) -> tuple[torch.nn.Module, torch.nn.Module]:
-    """``(model to train, raw model)``: the raw model is the one without the DDP wrapper (checkpoints, validation)."""
+    """``(model to train, raw model)``: the raw model is the one without the DDP wrapper and without
+    ``torch.compile`` (checkpoints: its state dict has no ``module.``/``_orig_mod.`` prefix; validation).
+
+    Order: SyncBatchNorm conversion (CUDA DDP), then DDP, then ``torch.compile`` of the DDP module
+    (``trainer.compile=true``), as PyTorch recommends for DDP + compile."""
     model = build_model(cfg).to(device)
     raw_model = model
     if dist.enabled:
@@ -303,6 +321,11 @@ def _model(cfg: DictConfig, device: torch.device, dist: ddp.DistInfo) -> tuple[t
         model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None,
             find_unused_parameters=bool(cfg.trainer.find_unused_parameters))
+    if bool(cfg.trainer.compile):
+        model = compile_for_training(model, device)
+        if dist.is_main:
+            log.info("trainer.compile=true: the training step runs torch.compile(model) (Inductor, default mode), "
+                     "compiled during the first step; validation and checkpoints use the plain model")
     return model, raw_model
 
 

@@ -17,6 +17,9 @@ ROOT = Path(__file__).resolve().parents[2]
 TINY = {
     "fredsnet": ["model=fredsnet", "model.width=0.0625", "model.head_width=64", "data.width=128", "data.height=64"],
     "horizonnet": ["model=horizonnet", "model.hidden=16", "data.width=128", "data.height=64"],
+    # the smallest registered depth model (fast to torch.compile): a one-level U-Net on equirect panoramas
+    "unet": ["model=unet", "model.base_channels=4", "model.levels=1", "data=synthetic_pano", "camera=equirect",
+             "data.width=64", "data.height=32"],
 }
 
 

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from omnidl.data.collate import collate_samples
 from omnidl.data.horizonnet_format import HorizonNetFolderDataset, write_label_cor

@@ -1,6 +1,5 @@
 """Sampler, schedules, checkpoints, launch helpers."""
 import math
-import os
 
 import pytest
 import torch

@@ -15,7 +15,9 @@ Per image ``<name>`` in ``DIR``:
   ``angles.png``, ``before_after.mp4`` (H.264).
 
 ``depth`` and ``layout`` level a non-upright panorama first (``--upright auto``, weight-free, see
-:mod:`omnidl.geometry.upright`) and return maps in the input's frame.
+:mod:`omnidl.geometry.upright`) and return maps in the input's frame. ``--compile`` compiles their network
+with ``torch.compile`` (Inductor, freezing) before the first image and prints the compile time; the outputs
+are the same up to float rounding.
 """
 from .cli import main
 

@@ -30,6 +30,9 @@ def build_parser(prog: str = "omnidl predict") -> argparse.ArgumentParser:
     ap.add_argument("--fps", type=float, default=None, help="stabilise: video frame rate (default: the input's)")
     ap.add_argument("--limit", type=int, default=0, help="only the first N images/frames (0: all)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--compile", action="store_true",
+                    help="depth/layout: compile the network with torch.compile (Inductor, freezing) before the "
+                         "first image; pays off over many images (the compile time is printed)")
     return ap
 
 
@@ -46,6 +49,8 @@ def main(argv: Sequence[str] | None = None, prog: str = "omnidl predict") -> int
         print(f"error: omnidl predict {args.command} needs --checkpoint CKPT (a train.py checkpoint or converted "
               "official weights, see docs/model_zoo.md)", file=sys.stderr)
         return 2
+    if args.compile and args.command not in ("depth", "layout"):
+        print(f"note: --compile applies to depth and layout; {args.command} runs uncompiled", file=sys.stderr)
     if args.command == "stabilise":
         from .stabilise import run_stabilise
         from .video import INSTALL_HINT, backend
@@ -63,11 +68,15 @@ def main(argv: Sequence[str] | None = None, prog: str = "omnidl predict") -> int
     if args.command in ("depth", "layout"):
         from .loader import load_predictor
         try:
-            pred = load_predictor(args.checkpoint, args.device)
+            pred = load_predictor(args.checkpoint, args.device, compile=args.compile)
         except (FileNotFoundError, ValueError, RuntimeError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
         print(f"{pred.name} from {args.checkpoint} ({pred.source}); network input {pred.width}x{pred.height}")
+        if pred.info.get("compiled"):
+            print(f"compiled the model in {pred.info['compile_s']:.1f} s (torch.compile, Inductor with freezing: "
+                  f"the first forward pass at {pred.width}x{pred.height} took {pred.info['first_call_s']:.1f} s, "
+                  f"the next {pred.info['call_s']:.3f} s)")
     policy = UprightPolicy(mode=args.upright)
     out.mkdir(parents=True, exist_ok=True)
     n_ok = n_bad = 0

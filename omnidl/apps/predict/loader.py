@@ -8,9 +8,16 @@ Accepted files:
 * FreDSNet weights converted by ``python -m omnidl.apps.convert_fredsnet`` (``model_kwargs`` +
   ``state_dict``): 512x256 equirectangular input as the official model;
 * an official HorizonNet ``.pth`` (``kwargs`` + ``state_dict``, e.g. ``resnet50_rnn__st3d.pth``): 1024x512.
+
+``compile=True`` (``omnidl predict --compile``): the eval-mode model is compiled with ``torch.compile`` and
+Inductor's ``freezing`` (:func:`omnidl.engine.compile.compile_for_inference`); it runs under
+``torch.no_grad()`` as always. The compilation happens at the first forward pass, at the network's input size
+(the only size it is called with), which :func:`load_predictor` makes right away: ``info["compile_s"]`` is
+that first pass's time minus a second pass's (``info["first_call_s"]``, ``info["call_s"]``).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,9 +72,9 @@ def _probe_outputs(model: torch.nn.Module, h: int, w: int) -> tuple[str, ...]:
     return tuple(sorted(out))
 
 
-def load_predictor(path: str | Path, device: str = "cpu") -> Predictor:
+def load_predictor(path: str | Path, device: str = "cpu", compile: bool = False) -> Predictor:
     """Load a checkpoint (see the module docstring) into a :class:`Predictor`; errors name the file and what
-    it lacks."""
+    it lacks. ``compile``: compile the model for inference (Inductor with freezing; see the module docstring)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"--checkpoint {path}: no such file (give best.pt/last.pt of a train.py run, "
@@ -110,4 +117,25 @@ def load_predictor(path: str | Path, device: str = "cpu") -> Predictor:
         cam = OmegaConf.to_container(conf.camera, resolve=True) if OmegaConf.select(conf, "camera") else None
         source = f"train.py checkpoint (step {ckpt.get('step', '?')})"
     model = model.to(device).eval()
-    return Predictor(model, name, h, w, cam, source, device, {"outputs": _probe_outputs(model, h, w)})
+    if not compile:
+        return Predictor(model, name, h, w, cam, source, device, {"outputs": _probe_outputs(model, h, w)})
+    from omnidl.engine.compile import compile_for_inference
+    compiled = compile_for_inference(model, device, "--compile")
+    try:
+        t0 = _synced_clock(device)
+        outputs = _probe_outputs(compiled, h, w)                    # traces and compiles (the lazy part)
+        t1 = _synced_clock(device)
+        _probe_outputs(compiled, h, w)                              # a compiled call, for comparison
+        t2 = _synced_clock(device)
+    except Exception as e:
+        raise RuntimeError(f"--compile: torch.compile of {name} failed ({type(e).__name__}: {e}); run without "
+                           "--compile") from e
+    info = {"outputs": outputs, "compiled": True, "compile_s": max(0.0, (t1 - t0) - (t2 - t1)),
+            "first_call_s": t1 - t0, "call_s": t2 - t1}
+    return Predictor(compiled, name, h, w, cam, source, device, info)
+
+
+def _synced_clock(device: str | torch.device) -> float:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
