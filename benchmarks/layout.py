@@ -3,8 +3,8 @@ Rc = 1 m, boundaries rounded to whole rows as a network would give them), as rat
 
 * ``loop-RANSAC``: the same pipeline with the RANSAC hypotheses solved one at a time in a Python loop
   (one SVD per hypothesis, 129 hypotheses per wall as in scaledLayout), measured in the same run;
-* the reference pipeline's published CPU times (scaledLayout on the same kind of 2-core machine:
-  0.59-1.29 s Manhattan, 0.80-3.17 s Atlanta; ``../shared/reference/layout.md`` section 6),
+* the reference pipeline's published CPU times (scaledLayout on the same kind of 2-core machine;
+  ``docs/design.md#reference-layout-pipeline-scaledlayout``, figures in ``benchmarks/RESULTS.md``),
   printed for context only (not measured here).
 
     python benchmarks/layout.py [--threads 2] [--reps 20] [--json out.json]

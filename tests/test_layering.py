@@ -17,7 +17,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1] / "omnidl"
 
-#: floor of every library package of omnidl (see DESIGN.md "The shape of the code")
+#: floor of every library package of omnidl (see docs/design.md#floors-of-the-package)
 RANKS = {
     "utils": 0, "classes": 0, "ops": 0,
     "cameras": 1,

@@ -1,4 +1,4 @@
-"""Loader of the Non-Central Indoor Dataset (thesis §5.5; ``../shared/reference/layout.md`` §3).
+"""Loader of the Non-Central Indoor Dataset (thesis §5.5; ``docs/design.md#non-central-indoor-dataset``).
 
 Layout of ``root``: ``img/NAME.png`` (1024x512 RGB), ``depth_coded/NAME.png`` (24-bit fixed point,
 ``d = (R/255 + G/255^2 + B/255^3) * 10`` m, RGB on disk), ``EM_gt/NAME.png`` (edge map),

@@ -23,7 +23,7 @@ Conventions:
   the up vector (horizon-plane normal) ``n = R.T @ UP`` in its own frame (:func:`up_from_rotation`);
   :func:`tilt_from_up` gives the roll and pitch of ``n`` (every ``n`` has one with pitch in
   ``[-pi/2, pi/2]`` and roll in ``(-pi, pi]``: tilts beyond 90° are ``|roll| > pi/2``).
-* **World frame** (DESIGN.md): gravity-aligned, ``z`` up; poses map ``X_world = R @ X_cam + t``.
+* **World frame** (``docs/design.md#conventions``): gravity-aligned, ``z`` up; poses map ``X_world = R @ X_cam + t``.
   An upright camera maps camera ``-y`` to world ``+z``; at yaw 0 camera ``x`` -> world ``+x`` and
   camera ``z`` -> world ``+y`` (:data:`UPRIGHT_TO_WORLD`, the convention of ``omnidl.synth`` too).
 """

@@ -1,4 +1,4 @@
-"""HorizonNet loss (``../shared/reference/layout.md`` §1.2): L1 on the boundary angles + BCE on the corner logits.
+"""HorizonNet loss (``docs/design.md#horizonnet-targets-and-loss``): L1 on boundary angles + BCE on corner logits.
 
 Predictions: ``outputs["boundary"] (B, 2, W)`` radians below the horizon, ``outputs["corner"] (B, 1, W)``
 logits. Targets (data-engine keys, ``docs/synth.md``): ``batch["boundary"] (B, 2, W)`` continuous pixel

@@ -39,7 +39,7 @@ def test_equisolid_thesis_focal_is_twice_standard():
     assert abs(float(uv[0]) - 512 - f_t * math.sin(phi / 2)) < 1e-9
 
 
-# OmniSCV-36 reference rays (reference/holinet_calib_omniscv.md §3.3): 1024 x 1024, centre (512, 512)
+# OmniSCV-36 reference rays (docs/design.md#omniscv-reference-rays): 1024 x 1024, centre (512, 512)
 OMNISCV = {
     ("equiangular", 266.685810, 220): {(612, 512): (0.366247, 0, 0.930517), (512, 300): (0, -0.713824, 0.700326),
                                        (900, 900): (0.624986, 0.624986, -0.467744),

@@ -86,7 +86,7 @@ def test_fitted_invpol_when_missing(calib_file):
 
 
 def test_matches_omniscv_reference_rays():
-    # reference/holinet_calib_omniscv.md §3.3: OmniSCV default polynomial, 1024 x 1024, centre (512, 512)
+    # docs/design.md#omniscv-reference-rays: OmniSCV default polynomial, 1024 x 1024, centre (512, 512)
     cam = Scaramuzza(width=1024, height=1024, pol=(-2.736690e+02, 0, 1.491215e-03, -1.810410e-06, 6.614668e-09),
                      cx=512.0, cy=512.0)
     pix = torch.tensor([[512, 512], [612, 512], [512, 300], [900, 900], [1000, 512]], dtype=torch.float64)

@@ -1,5 +1,5 @@
 """Helpers of the geometry tests: a smooth texture on the sphere, a stand-in fisheye,
-and rays of a non-central panorama written from DESIGN.md's definition (independent of omnidl)."""
+and rays of a non-central panorama written from docs/design.md#conventions (independent of omnidl)."""
 from __future__ import annotations
 
 import math
@@ -58,7 +58,7 @@ def fisheye_195(size: int = 64) -> EquiangularFisheye:
 def noncentral_panorama_rays(points: torch.Tensor, rc: float = 1.0) -> torch.Tensor:
     """Plücker rays ``(..., 6)`` of a non-central panorama (radius ``rc``) seeing ``points (..., 3)``.
 
-    DESIGN.md: the optical centre of longitude ``lon`` is ``rc (sin lon, 0, cos lon)``; the ray
+    docs/design.md#conventions: the optical centre of longitude ``lon`` is ``rc (sin lon, 0, cos lon)``; the ray
     leaves radially, so the ray of a point lies in the half plane of the point's longitude.
     """
     lon = torch.atan2(points[..., 0], points[..., 2])
