@@ -15,6 +15,8 @@ from __future__ import annotations
 import os
 import statistics
 import time
+
+import torch
 from typing import Callable
 
 
@@ -137,9 +139,9 @@ def allocator_tag(environ: dict[str, str] | None = None) -> str:
 
 
 def host_line() -> str:
-    """``# host: CPU model, CPUs, L2 per core, omnidl's native kernel``: figures differ between hosts (an AVX-512
-    host runs oneDNN's convolutions about twice as fast as an AVX2 one), so each run names its own."""
-    from omnidl.nn import fused, native
+    """``# host: CPU model, CPUs, L2 per core, the fixed-offset op's CPU kernel``: figures differ between hosts (an
+    AVX-512 host runs oneDNN's convolutions about twice as fast as an AVX2 one), so each run names its own."""
+    from omnidl.ops import _fixed_offset_cpu
     model = "unknown CPU"
     try:
         for line in open("/proc/cpuinfo"):
@@ -148,11 +150,11 @@ def host_line() -> str:
                 break
     except OSError:
         pass
-    l2 = fused.l2_cache_bytes()
-    st = native.status()
+    l2 = _fixed_offset_cpu.l2_cache_bytes()
+    st = _fixed_offset_cpu.native_status()
     kernel = st["kernel"] or "unavailable: " + st["reason"]
-    return (f"# host: {model}, {os.cpu_count()} CPUs, L2 {l2 // 1024 if l2 else '?'} kB per core, omnidl native "
-            f"kernel {kernel}")
+    return (f"# host: {model}, {os.cpu_count()} CPUs, L2 {l2 // 1024 if l2 else '?'} kB per core, torch "
+            f"{torch.__version__}, omnidl fixed-offset CPU kernel {kernel}")
 
 
 def is_loaded(threads: int, steal: bool = True) -> bool:

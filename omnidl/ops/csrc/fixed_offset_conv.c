@@ -7,10 +7,13 @@
  * image). For a block of m output positions the taps are interpolated into a column block A (m, K*C), which stays
  * in the core's cache, and multiplied at once by Wm (K*C, cout); the full (P, K*C) column matrix never exists.
  *
- * Layouts (row-major): x (H*W, C) channels-last input rows of one image, images x_img floats apart; out and gout
- * (P, cout) rows of one image, images P*cout floats apart; wt (cout, K*C), wt[o][t*C + c] = weight[o][c][t] (the
- * weight in channels-last order: a channels-last weight as it lies), i.e. Wm = wt^T; gx (H*W, C) per image and
- * gw (K*C, cout) are accumulated into (+=).
+ * Layouts (row-major): x (H*W, C) channels-last input rows of one image, images x_img floats apart; wt (cout, K*C),
+ * wt[o][t*C + c] = weight[o][c][t] (the weight in channels-last order: a channels-last weight as it lies), i.e.
+ * Wm = wt^T; gw (K*C, cout) is accumulated into (+=). out, gout and gx are the layout of the input tensor: with
+ * `planes` 0 channels-last rows ((P, cout) per image for out and gout, (H*W, C) for gx, accumulated into), with
+ * `planes` 1 channel planes (NCHW: (cout, P) and (C, H*W) per image; gx written, not accumulated). The kernel
+ * writes and reads the planes itself (a block's output transposed from the cache, a block of gout read in
+ * place), so a network in NCHW memory pays no layout copies for them.
  *
  * Threads: each call is one OpenMP parallel region of `nthreads` threads on PyTorch's own team (libgomp is the copy
  * PyTorch loaded), split by output positions, or for few positions (small deep maps) by output channels.
@@ -184,11 +187,12 @@ static void channel_share(int cout, int t, int nt, int *c0, int *c1) {
     *c1 = (int)min64(cout, NR * (panels * (t + 1) / nt));
 }
 
-/* Forward of B images: out rows (B, P, cout) = bias + gathered taps @ Wm, in blocks of `block` positions.
- * Returns 0, or 1 when a buffer cannot be allocated. */
+/* Forward of B images: out = bias + gathered taps @ Wm, in blocks of `block` positions (`planes`: out is NCHW,
+ * each block computed into the thread's buffer, then written transposed). Returns 0, or 1 when a buffer cannot be
+ * allocated. */
 int omnidl_foc_forward(const float *x, int64_t x_img, int C, int H, int W, const double *pos, const double *mask,
                        int wrap, int K, int64_t P, int B, const float *wt, int cout, const float *bias, float *out,
-                       int64_t block, int nthreads) {
+                       int planes, int64_t block, int nthreads) {
     const taps_t tp = {pos, mask, H, W, wrap, 1.0 / W};
     const int KC = K * C;
     const int64_t total = (int64_t)B * P;
@@ -214,30 +218,38 @@ int omnidl_foc_forward(const float *x, int64_t x_img, int C, int H, int W, const
             s0 = span_edge(total, t, nt);
             s1 = span_edge(total, t + 1, nt);
         }
-        float *A = NULL;
-        if (s1 > s0 && c1 > c0 && !(A = (float *)malloc(sizeof(float) * (size_t)(block * KC)))) err = 1;
+        const int nc = c1 - c0;
+        float *A = NULL, *ob = NULL;
+        if (s1 > s0 && nc > 0 && !(A = (float *)malloc(sizeof(float) * (size_t)(block * KC)))) err = 1;
+        if (A && planes && !(ob = (float *)malloc(sizeof(float) * (size_t)(block * nc)))) err = 1;
 #if !HAVE_KERNEL
         const int prev = MKL_Set_Num_Threads_Local ? MKL_Set_Num_Threads_Local(1) : -1;
 #endif
-        for (int64_t s = s0; A && s < s1;) {
+        for (int64_t s = s0; A && (ob || !planes) && s < s1;) {
             const int64_t b = s / P, p = s % P;
             const int m = (int)min64(block, min64(s1 - s, P - p));
-            float *o = out + (b * P + p) * cout + c0;
+            float *o = planes ? ob : out + (b * P + p) * cout + c0;  /* rows (m, nc), leading dimension ldo */
+            const int64_t ldo = planes ? nc : cout;
             gather(x + b * x_img, C, &tp, p * K, (p + m) * K, A);
 #if HAVE_KERNEL  /* o (m, c1 - c0) = A (m, KC) Wm[:, c0:c1] + bias[c0:c1] */
-            gemm_packed(m, c1 - c0, KC, A, KC, 1, wp + (int64_t)(c0 / NR) * KC * NR, o, cout, 0,
-                        bias ? bias + c0 : NULL);
+            gemm_packed(m, nc, KC, A, KC, 1, wp + (int64_t)(c0 / NR) * KC * NR, o, ldo, 0, bias ? bias + c0 : NULL);
 #else
             if (bias)
-                for (int i = 0; i < m; ++i) memcpy(o + (int64_t)i * cout, bias, sizeof(float) * (size_t)cout);
-            blas_rows('N', 'T', m, cout, KC, bias ? 1.0f : 0.0f, A, KC, wt, KC, o, cout);
+                for (int i = 0; i < m; ++i) memcpy(o + (int64_t)i * ldo, bias, sizeof(float) * (size_t)cout);
+            blas_rows('N', 'T', m, cout, KC, bias ? 1.0f : 0.0f, A, KC, wt, KC, o, (int)ldo);
 #endif
+            if (planes)  /* the block's rows, transposed into the channel planes while in the cache */
+                for (int c = 0; c < nc; ++c) {
+                    float *dst = out + (b * cout + c0 + c) * P + p;
+                    for (int i = 0; i < m; ++i) dst[i] = ob[(int64_t)i * nc + c];
+                }
             s += m;
         }
 #if !HAVE_KERNEL
         if (MKL_Set_Num_Threads_Local && prev >= 0) MKL_Set_Num_Threads_Local(prev);
 #endif
         free(A);
+        free(ob);
     }
 #if HAVE_KERNEL
     free(wp);
@@ -270,23 +282,30 @@ static void touched_rows(const taps_t *tp, int K, int64_t P, int64_t s0, int64_t
  * taps, then gx += S^T (gout Wm^T) scattered straight from the block. Thread 0 accumulates into gw/gx, the others
  * into private copies (of gx only the band of input rows their positions touch), added in at the end. With few
  * positions the weight gradient is split by output channels instead, straight into gw. gx (B images of x_img
- * floats) or gw (K*C, cout) may be NULL when not needed. Returns 0, or 1 when a buffer cannot be allocated. */
+ * floats) or gw (K*C, cout) may be NULL when not needed. With `planes`, gout is read and gx written as channel
+ * planes (the scatter accumulates into channels-last rows of this call's own, transposed into gx at the end).
+ * Returns 0, or 1 when a buffer cannot be allocated. */
 int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, const double *pos, const double *mask,
                         int wrap, int K, int64_t P, int B, const float *wt, int cout, const float *gout, float *gx,
-                        float *gw, int64_t block, int nthreads) {
+                        float *gw, int planes, int64_t block, int nthreads) {
     const taps_t tp = {pos, mask, H, W, wrap, 1.0 / W};
     const int KC = K * C;
     const int64_t total = (int64_t)B * P;
     const int gw_by_channels = split_channels(total, block, nthreads, cout);
+    /* gout's element (position r, channel c) of a block at g[r * grs + c * gcs] */
+    const int64_t grs = planes ? 1 : cout, gcs = planes ? P : 1;
+    const float *gplanes = planes ? gout : NULL;  /* (for the BLAS calls' transposed operands) */
+    (void)gplanes;
+    float *gxr = planes && gx ? (float *)calloc((size_t)(B * x_img), sizeof(float)) : gx;  /* rows accumulated */
     float **pgw = (float **)calloc((size_t)nthreads, sizeof(float *));
     float **pgx = (float **)calloc((size_t)nthreads, sizeof(float *));
     int64_t *lo = (int64_t *)calloc((size_t)nthreads, sizeof(int64_t));
     int64_t *hi = (int64_t *)calloc((size_t)nthreads, sizeof(int64_t));
 #if HAVE_KERNEL
     float *wtp = gx ? (float *)malloc(sizeof(float) * (size_t)packed_floats(cout, KC)) : NULL;  /* Wm^T panels */
-    int err = !pgw || !pgx || !lo || !hi || (gx && !wtp);
+    int err = !pgw || !pgx || !lo || !hi || (gx && !wtp) || (gx && !gxr);
 #else
-    int err = !pgw || !pgx || !lo || !hi;
+    int err = !pgw || !pgx || !lo || !hi || (gx && !gxr);
 #endif
     if (!err) {
 #pragma omp parallel num_threads(nthreads) reduction(| : err)
@@ -305,11 +324,11 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
             int ok = A != NULL;
 #endif
             /* thread 0 writes the results directly, the others private copies (none for an empty share) */
-            float *mygw = t == 0 || gw_by_channels ? gw : NULL, *mygx = t == 0 ? gx : NULL;
+            float *mygw = t == 0 || gw_by_channels ? gw : NULL, *mygx = t == 0 ? gxr : NULL;
             int64_t mylo = 0, myhi = 0;
             if (ok && gw && !gw_by_channels && t > 0 && s1 > s0)
                 ok = (mygw = (float *)calloc((size_t)KC * (size_t)cout, sizeof(float))) != NULL;
-            if (ok && gx && t > 0 && s1 > s0) {
+            if (ok && gxr && t > 0 && s1 > s0) {
                 touched_rows(&tp, K, P, s0, s1, &mylo, &myhi);
                 if (myhi > mylo) ok = (mygx = (float *)calloc((size_t)((myhi - mylo) * C), sizeof(float))) != NULL;
             }
@@ -324,7 +343,7 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                 for (int64_t s = w0; mygw && c1 > c0 && s < w1;) {
                     const int64_t b = s / P, p = s % P;
                     const int m = (int)min64(block, min64(w1 - s, P - p));
-                    const float *g = gout + (b * P + p) * cout;
+                    const float *g = gout + (planes ? b * cout * P + p : (b * P + p) * cout);
                     gather(x + b * x_img, C, &tp, p * K, (p + m) * K, A);
 #if HAVE_KERNEL  /* gw[:, c0:c1] (KC, cout) += A^T g[:, c0:c1] */
                     for (int q = 0; q < (c1 - c0 + NR - 1) / NR; ++q) {  /* this thread's panels of g, packed */
@@ -332,13 +351,14 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                         float *d = gp + (int64_t)q * m * NR;
                         for (int r = 0; r < m; ++r) {
                             int j = 0;
-                            for (; j < nr; ++j) d[r * NR + j] = g[(int64_t)r * cout + c0 + q * NR + j];
+                            for (; j < nr; ++j) d[r * NR + j] = g[r * grs + (c0 + q * NR + j) * gcs];
                             for (; j < NR; ++j) d[r * NR + j] = 0.0f;
                         }
                     }
                     gemm_packed(KC, c1 - c0, m, A, 1, KC, gp, mygw + c0, cout, 1, NULL);
 #else
-                    blas_rows('T', 'N', KC, cout, m, 1.0f, A, KC, g, cout, mygw, cout);
+                    blas_rows('T', planes ? 'T' : 'N', KC, cout, m, 1.0f, A, KC, g, planes ? (int)P : cout, mygw,
+                              cout);
 #endif
                     s += m;
                 }
@@ -347,11 +367,11 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                 for (int64_t s = s0; base && s < s1;) {
                     const int64_t b = s / P, p = s % P;
                     const int m = (int)min64(block, min64(s1 - s, P - p));
-                    const float *g = gout + (b * P + p) * cout;
+                    const float *g = gout + (planes ? b * cout * P + p : (b * P + p) * cout);
 #if HAVE_KERNEL
-                    gemm_packed(m, KC, cout, g, cout, 1, wtp, A, KC, 0, NULL);  /* A (m, KC) = g Wm^T */
+                    gemm_packed(m, KC, cout, g, grs, gcs, wtp, A, KC, 0, NULL);  /* A (m, KC) = g Wm^T */
 #else
-                    blas_rows('N', 'N', m, KC, cout, 0.0f, g, cout, wt, KC, A, KC);
+                    blas_rows(planes ? 'T' : 'N', 'N', m, KC, cout, 0.0f, g, planes ? (int)P : cout, wt, KC, A, KC);
 #endif
                     scatter(base + b * x_img, C, &tp, p * K, (p + m) * K, A);
                     s += m;
@@ -375,9 +395,21 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                 }
                 if (pgx[k]) {
                     const float *src = pgx[k];
-                    float *dst = gx + lo[k] * C;
+                    float *dst = gxr + lo[k] * C;
 #pragma omp for schedule(static)
                     for (int64_t e = 0; e < (hi[k] - lo[k]) * C; ++e) dst[e] += src[e];
+                }
+            }
+            if (planes && gx) {  /* the rows into gx's channel planes, 64 pixels (a block in the cache) at a time */
+                const int64_t HW = x_img / C, blocks = (HW + 63) / 64;
+#pragma omp for schedule(static)
+                for (int64_t e = 0; e < B * blocks; ++e) {
+                    const int64_t b = e / blocks, q0 = (e % blocks) * 64, q1 = min64(HW, q0 + 64);
+                    const float *src = gxr + b * x_img;
+                    for (int c = 0; c < C; ++c) {
+                        float *dst = gx + (b * C + c) * HW;
+                        for (int64_t q = q0; q < q1; ++q) dst[q] = src[q * C + c];
+                    }
                 }
             }
             free(A);
@@ -393,6 +425,7 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
 #if HAVE_KERNEL
     free(wtp);
 #endif
+    if (gxr != gx) free(gxr);
     free(pgw);
     free(pgx);
     free(lo);
