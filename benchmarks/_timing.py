@@ -115,17 +115,20 @@ def load_line(threads: int, what: str = "") -> str:
     return f"# load average (1 min) {la:.2f}{' ' + what if what else ''}, own threads {threads}{shown}{flag}"
 
 
-#: glibc's allocator settings read from the environment (``mallopt(3)``), and the tunables variable
+#: glibc's allocator settings read from the environment (``mallopt(3)``); ``GLIBC_TUNABLES``, PyTorch's
+#: ``THP_MEM_ALLOC_ENABLE`` and a preloaded allocator are checked by :func:`allocator_tag` as well
 ALLOCATOR_VARS = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_",
                   "MALLOC_ARENA_MAX")
 
 
 def allocator_tag(environ: dict[str, str] | None = None) -> str:
-    """``""`` under glibc's default allocator, else `` [allocator: ...; the targets are judged on the default]``.
-    A process that keeps freed memory (``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=...``, a preloaded jemalloc or
-    tcmalloc) skips the page faults of freshly mapped large buffers, which glibc otherwise takes on every block
-    of more than 32 MB, and PyTorch's ``THP_MEM_ALLOC_ENABLE=1`` takes one fault per 2 MB huge page instead of
-    one per 4 kB page: whole-model times and the ratios between two models move with it (docs/fredsnet.md)."""
+    """``""`` under glibc's default allocator, else `` [allocator: ...; the targets are judged on the default]``,
+    appended to every :func:`target_line`. The benchmarks run on the default allocator; a run made otherwise
+    must say so, because the allocator moves whole-model CPU times and the ratios between two models: a process
+    that keeps freed memory (``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=...``, a preloaded jemalloc, tcmalloc
+    or mimalloc, glibc's malloc tunables) skips the page faults of freshly mapped large buffers, which glibc
+    otherwise takes for every block above its mmap threshold, and PyTorch's ``THP_MEM_ALLOC_ENABLE=1`` takes
+    one fault per 2 MB huge page instead of one per 4 kB page."""
     env = os.environ if environ is None else environ
     parts = [f"{k}={env[k]}" for k in ALLOCATOR_VARS if env.get(k)]
     if env.get("THP_MEM_ALLOC_ENABLE", "").strip() not in ("", "0"):       # PyTorch's own: huge pages for >= 2 MB

@@ -4,16 +4,16 @@ torchvision's ResNet-50 forward measured in the same run.
     python benchmarks/fredsnet.py [--threads 2] [--reps 5] [--extra-equi backbone wconv,heads] [--json out.json]
     python benchmarks/fredsnet.py --scaling [--threads 2] [--reps 5]   # forward growth 512x256 -> 1024x512
 
-Protocol (as the reference measurement in the project notes): ``torch.set_num_threads(threads)``,
-random weights, batch 1, 2 warm-up runs (the Equi layers build their sampling plans there);
+Protocol: ``torch.set_num_threads(threads)``, random weights, batch 1, 2 warm-up runs (the Equi layers compute
+their sample positions at the first);
 forward = ``eval()`` + ``no_grad``; forward+backward = ``train()``, loss
 ``CE(semantic, random labels) + L1(depth, random)``, ``zero_grad`` + forward + backward.
 The timed runs are **interleaved**: each repetition times the baseline and every variant once, so
 that a change of machine load hits all of them alike; ratios are medians of the per-repetition
 ratios, absolute times medians (and minima) over repetitions. The 512x256 forwards run as one phase
 and the 256x128 jobs (training steps with their baseline forward) as the next: forwards back to back,
-as in inference and as the reference was timed (a training step in between returns its buffers to
-the OS and the next forward page-faults them in again). The load average is printed: absolute
+as in inference (a training step in between returns its buffers to the OS and the next forward page-faults them
+in again). The load average is printed: absolute
 numbers taken on a busy machine are not comparable with anything.
 Targets (issue 5): FreDSNet-Std forward <= 0.8 s and FreDSNet-Equi <= 1.3x Std.
 """
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=5)
-    ap.add_argument("--warmup", type=int, default=2, help="untimed runs per job first (>= 1: Equi plans are built)")
+    ap.add_argument("--warmup", type=int, default=2, help="untimed runs per job first (>= 1: Equi sample positions computed)")
     ap.add_argument("--backbone", default="resnet50")
     ap.add_argument("--width", type=float, default=1.0)
     ap.add_argument("--equi-parts", nargs="+", default=None,
@@ -100,7 +100,8 @@ def main(argv: list[str] | None = None) -> dict:
             equi["equi_parts"] = tuple(a.equi_parts)
         variants.append(("equi", equi))
     for parts in a.extra_equi:
-        variants.append((f"equi[{parts}]", dict(conv="equi", camera=cam, equi_parts=tuple(parts.split(",")))))
+        variants.append((f"equi[{parts}]", dict(conv="projected", camera=cam,
+                                                equi_parts=tuple(parts.split(",")))))
 
     res: dict = {"threads": a.threads, "reps": a.reps, "backbone": a.backbone, "width": a.width,
                  "load_before": os.getloadavg()}
@@ -116,12 +117,11 @@ def main(argv: list[str] | None = None) -> dict:
         jobs[f"{name}_fwdbwd_256x128"] = train_step_fn(model, 128, 256)
 
     times: dict[str, list[float]] = {k: [] for k in jobs}
-    # two phases, the 512x256 forwards then the 256x128 jobs (training steps and their baseline forward), as
-    # the reference timed them: forwards back to back; within a phase every repetition times the baseline
-    # and each variant once
+    # two phases, the 512x256 forwards then the 256x128 jobs (training steps and their baseline forward):
+    # forwards back to back; within a phase every repetition times the baseline and each variant once
     for phase in ("512x256", "256x128"):
         keys = [k for k in jobs if k.endswith(phase)]
-        for key in keys:                              # warm-up (and Equi sampling plans)
+        for key in keys:                              # warm-up (and Equi sample positions)
             for _ in range(max(1, a.warmup)):
                 jobs[key]()
             print(f"warmed up {key}", flush=True)

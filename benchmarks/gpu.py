@@ -1,29 +1,46 @@
-"""GPU speed (issue 17, item 8): FreDSNet fps, ProjectedConv2d vs cuDNN conv2d, a training step.
+"""GPU speed: FreDSNet inference eager and compiled, ProjectedConv2d against cuDNN, a FreDSNet training step.
 
-    python benchmarks/gpu.py [--device cuda] [--reps 20] [--amp bf16|fp16|none] [--profile FILE] [--only fps,conv,train]
+    python benchmarks/gpu.py [--device cuda] [--reps 20] [--amp bf16|fp16|none] [--only fps,conv,train]
+                             [--compile-modes default,reduce-overhead] [--no-compile-train] [--budget-s 200]
+                             [--profile FILE]
 
-* FreDSNet (ResNet-50, width 1) forward at 512x256, batch 1, eval + no_grad, float32 and under autocast:
-  frames per second (target >= 100 fps on an H100/H200-class GPU; the thesis reports 33 fps on an RTX 3090),
-  as a ratio to torchvision's ResNet-50 forward at the same size in the same run; also replayed from a CUDA
-  graph (batch-1 inference is launch-bound: the graph removes the per-kernel launch gaps);
-* ``ProjectedConv2d`` (fast backend as it runs by default on CUDA: :mod:`omnidl.nn.grid_conv`, or with
-  ``OMNIDL_TRITON=1`` the fused Triton kernels of :mod:`omnidl.nn.triton_conv`) forward and forward+backward vs
-  ``nn.Conv2d`` (cuDNN, TF32 as PyTorch's default, and without TF32) at 64 ch 128x256 and 256 ch 64x128, batch 1
-  (target <= 1.5x), with both CUDA backends timed beside it whatever the default, and other block sizes of the
-  fused kernels; the last line says whether the fused kernels beat ``grid_conv`` at both layers;
-* a FreDSNet training step (CE + L1, zero_grad + forward + backward + SGD step) at 256x128, batch 4.
+CUDA only: without a CUDA device it prints ``no CUDA device: nothing measured`` and exits 0 (the CPU figures come
+from benchmarks/projected_conv.py and benchmarks/fredsnet.py). Each part times omnidl against a baseline in the
+same run:
 
-Times are CUDA-event medians after warm-up (plans, cuDNN autotuning), interleaved per repetition. Each part
-runs on even when another failed (its traceback is printed; the exit status is 1 then). ``--profile FILE``
-writes the CUDA-time tables of one FreDSNet forward and one ProjectedConv2d forward+backward (torch.profiler).
-Prints a note and exits 0 when no CUDA device is present (CPU speed: benchmarks/projected_conv.py, fredsnet.py).
+* ``fps``: FreDSNet (ResNet-50, width 1) forward at 512x256, batch 1, eval + ``no_grad``, against torchvision's
+  ``resnet50`` run the same way: eager in float32 and under autocast float16 and bfloat16, each in NCHW and in
+  channels-last (input and weights; ``channels_last=True``); then compiled with ``torch.compile`` (Inductor) under
+  autocast ``--amp`` (float32 with ``--amp none``): mode ``default`` through
+  :func:`omnidl.engine.compile.compile_for_inference` (freezing, as ``omnidl predict --compile``) and mode
+  ``reduce-overhead`` (the same with CUDA graphs: batch-1 inference is launch-bound), resnet50 compiled alike.
+  Target: >= 100 frames per second.
+* ``conv``: ``ProjectedConv2d`` (equirectangular camera, 3x3, padding 1, float32, batch 1: one call of
+  ``torch.ops.omnidl.fixed_offset_conv2d``) at 64 ch 128x256 and 256 ch 64x128, forward (``no_grad``) and
+  forward + backward, against ``nn.Conv2d`` with the same weights (cuDNN, PyTorch's default TF32 policy).
+  Target: <= 1.5x ``nn.Conv2d``.
+* ``train``: a FreDSNet (ResNet-50, width 1) training step at 256x128, batch 4 (zero_grad, forward, cross-entropy
+  + L1 loss, backward, SGD step), eager and compiled (:func:`omnidl.engine.compile.compile_for_training`), in
+  float32 and under autocast ``--amp`` (float16 with a ``GradScaler``); ratios to the eager float32 step.
+
+Times are medians of CUDA-event times over ``--reps`` repetitions after warm-up, the jobs of a part interleaved
+(one call of each per repetition, order alternated); a ratio is the median of the per-repetition ratios. A
+compiled job is called once before the warm-up and that call's wall time (tracing and compiling included) is
+printed as its compile time. No new compilation starts once the script has run ``--budget-s`` seconds (the
+skipped jobs are named), so that the run fits one device call. A part that fails prints its traceback and the
+others still run (the exit status is 1 then). ``--profile FILE`` writes the CUDA-time tables of one FreDSNet
+forward and one ProjectedConv2d forward + backward (torch.profiler).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import copy
 import statistics
 import sys
+import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -31,274 +48,356 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks._timing import ratio, target_line  # noqa: E402
 
-def _cuda_times(jobs: dict, reps: int, warmup: int = 3) -> dict[str, float]:
-    for fn in jobs.values():
-        for _ in range(warmup):
+#: autocast dtype of each precision's name (``None``: float32, no autocast)
+PRECISIONS = {"fp32": None, "fp16": torch.float16, "bf16": torch.bfloat16}
+FPS_TARGET = 100.0
+CONV_TARGET = 1.5
+CONV_CONFIGS = ((64, 128, 256), (256, 64, 128))
+
+
+class Budget:
+    """Seconds since the start; :meth:`allows` says whether a new compilation may start."""
+
+    def __init__(self, seconds: float):
+        self.seconds = seconds
+        self.t0 = time.perf_counter()
+
+    def spent(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def allows(self, what: str) -> bool:
+        if self.spent() < self.seconds:
+            return True
+        print(f"# skipped {what}: the time budget of {self.seconds:.0f} s (--budget-s) is spent "
+              f"({self.spent():.0f} s so far)")
+        return False
+
+
+def autocast(prec: str):
+    """``torch.autocast`` on CUDA for ``prec`` (``fp16``/``bf16``), or no context for ``fp32``."""
+    dt = PRECISIONS[prec]
+    return contextlib.nullcontext() if dt is None else torch.autocast("cuda", dtype=dt)
+
+
+def cuda_times(jobs: dict[str, Callable[[], object]], reps: int, warmup: int = 3) -> dict[str, list[float]]:
+    """CUDA-event milliseconds of every job per repetition (one call of each, order alternated every repetition)
+    after ``warmup`` untimed rounds. A job whose wall time is well above its event time (its work ran outside
+    the current stream, or the host stalled it) is named in a note."""
+    for _ in range(warmup):
+        for fn in jobs.values():
             fn()
     torch.cuda.synchronize()
-    out: dict[str, list[float]] = {k: [] for k in jobs}
+    names = list(jobs)
+    out: dict[str, list[float]] = {k: [] for k in names}
+    wall: dict[str, list[float]] = {k: [] for k in names}
     for r in range(reps):
-        for k in (list(jobs) if r % 2 == 0 else list(jobs)[::-1]):
+        for k in (names if r % 2 == 0 else names[::-1]):
             s, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            t0 = time.perf_counter()
             s.record()
             jobs[k]()
             e.record()
             torch.cuda.synchronize()
+            wall[k].append((time.perf_counter() - t0) * 1e3)
             out[k].append(s.elapsed_time(e))
-    return {k: statistics.median(v) for k, v in out.items()}
+    odd = [f"{k} ({statistics.median(wall[k]):.2f} ms wall, {statistics.median(out[k]):.2f} ms events)"
+           for k in names if statistics.median(wall[k]) > 1.25 * statistics.median(out[k]) + 0.1]
+    if odd:
+        print("# wall time well above the CUDA-event time: " + "; ".join(odd))
+    return out
 
 
-def _graphed(fn, x: torch.Tensor):
-    """``fn(x)`` captured in a CUDA graph: returns ``replay()`` (reads the static ``x``), or raises what the
-    capture raised (a path that syncs with the host or allocates outside the graph's pool cannot be captured)."""
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        for _ in range(3):
-            fn(x)
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        fn(x)
-    return graph.replay
+def med(times: dict[str, list[float]], k: str) -> float:
+    return statistics.median(times[k])
 
 
-def fredsnet_fps(dev, reps: int, amp: str, amp_dtype) -> None:
-    """Part 1: FreDSNet forward fps at 512x256 (eager, autocast, CUDA graph) against torchvision's ResNet-50."""
+def first_call_s(fn: Callable[[], object]) -> float:
+    """Wall seconds of one call of ``fn`` (a compiled job's first: tracing and compiling included)."""
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    fn()
+    torch.cuda.synchronize()
+    return time.perf_counter() - t0
+
+
+def graph_breaks(reset: bool = False) -> str:
+    """TorchDynamo's graph breaks since the last ``reset`` (count and the first reasons), for the compile lines."""
+    try:
+        from torch._dynamo.utils import counters
+    except ImportError:  # pragma: no cover
+        return "graph breaks: unknown"
+    if reset:
+        counters["graph_break"].clear()
+        return ""
+    breaks = counters["graph_break"]
+    n = sum(breaks.values())
+    return f"{n} graph breaks" + (f" ({'; '.join(str(k)[:80] for k in list(breaks)[:3])})" if n else "")
+
+
+def compiled_once(label: str, job: Callable[[], object]) -> Callable[[], object]:
+    """Call a compiled ``job`` once (compiling it) and print its compile time and graph breaks."""
+    graph_breaks(reset=True)
+    s = first_call_s(job)
+    print(f"# {label}: compiled in {s:.1f} s (wall time of the first call), {graph_breaks()}", flush=True)
+    return job
+
+
+def _allow_recompiles() -> None:
+    """Each compiled model (and precision) is an entry of TorchDynamo's cache for the same code: raise the limit
+    of entries per code object so that none falls back to eager."""
+    import torch._dynamo.config as cfg
+    for name in ("recompile_limit", "cache_size_limit"):
+        if hasattr(cfg, name):
+            setattr(cfg, name, max(getattr(cfg, name), 64))
+
+
+class FrozenMode(torch.nn.Module):
+    """An eval-mode model compiled by Inductor with freezing in a given ``mode`` (``reduce-overhead``: CUDA
+    graphs), called under ``no_grad`` like :class:`omnidl.engine.compile.FrozenInference` (mode default)."""
+
+    def __init__(self, model: torch.nn.Module, mode: str):
+        super().__init__()
+        self.compiled = torch.compile(model, mode=mode)
+
+    def forward(self, x):
+        import torch._inductor.config as inductor_config
+        with torch.no_grad(), inductor_config.patch(freezing=True):
+            return self.compiled(x)
+
+
+def compiled_for_inference(model: torch.nn.Module, mode: str, dev) -> torch.nn.Module:
+    from omnidl.engine.compile import check_inductor, compile_for_inference
+    if mode == "default":
+        return compile_for_inference(model, dev, option="benchmarks/gpu.py --compile-modes")
+    check_inductor(dev, "benchmarks/gpu.py --compile-modes", "Pass --compile-modes none")
+    return FrozenMode(model, mode)
+
+
+def fredsnet_fps(dev, a, budget: Budget) -> None:
+    """Part ``fps``: FreDSNet forward at 512x256, batch 1, eager and compiled, against torchvision's resnet50."""
     import torchvision
 
     from omnidl.models.fredsnet import FreDSNet
     torch.manual_seed(0)
-    net = FreDSNet(backbone="resnet50", width=1.0).to(dev).eval()
-    r50 = torchvision.models.resnet50().to(dev).eval()
+    models = {"fredsnet": FreDSNet(backbone="resnet50", width=1.0).to(dev).eval(),
+              "resnet50": torchvision.models.resnet50().to(dev).eval()}
+    cl = {"fredsnet": FreDSNet(backbone="resnet50", width=1.0, channels_last=True).to(dev).eval(),
+          "resnet50": copy.deepcopy(models["resnet50"]).to(memory_format=torch.channels_last)}
+    cl["fredsnet"].load_state_dict(models["fredsnet"].state_dict())
     x = torch.rand(1, 3, 256, 512, device=dev)
+    x_cl = x.contiguous(memory_format=torch.channels_last)
 
-    def call(m, amp_dt):
-        def run(inp=x):
-            with torch.no_grad(), torch.autocast("cuda", dtype=amp_dt or torch.float32, enabled=amp_dt is not None):
-                return m(inp)
+    def forward(m, prec, inp):
+        def run():
+            with torch.no_grad(), autocast(prec):
+                m(inp)
         return run
-    nchw = FreDSNet(backbone="resnet50", width=1.0, channels_last=False).to(dev).eval()
-    nchw.load_state_dict(net.state_dict())
-    jobs = {"fredsnet fp32": call(net, None), "resnet50 fp32": call(r50, None), "fredsnet-nchw fp32": call(nchw, None)}
-    if amp_dtype is not None:
-        jobs[f"fredsnet {amp}"] = call(net, amp_dtype)
-        jobs[f"resnet50 {amp}"] = call(r50, amp_dtype)
-    precs = ["fp32"] + ([amp] if amp_dtype is not None else [])
-    graphs = {}
-    for prec in precs:
-        for name, m in (("fredsnet", net), ("resnet50", r50)):
-            try:
-                graphs[f"{name} {prec} graph"] = _graphed(call(m, None if prec == "fp32" else amp_dtype), x)
-            except Exception as e:  # noqa: BLE001 -- reported, the eager figures still stand
-                where = [f"{f.filename.rsplit('omnidl/', 1)[-1]}:{f.lineno}"
-                         for f in traceback.extract_tb(e.__traceback__) if "/omnidl/" in f.filename][-3:]
-                print(f"# {name} {prec}: no CUDA graph ({type(e).__name__}: "
-                      f"{str(e).splitlines()[0][:160]}; at {where})")
-                torch.cuda.synchronize()
-    t = _cuda_times({**jobs, **graphs}, reps)
-    print(f"# FreDSNet eager fp32 in NCHW memory (channels_last=False): {t['fredsnet-nchw fp32']:.2f} ms "
-          f"against {t['fredsnet fp32']:.2f} ms channels-last (the eval default)")
-    for prec in precs:
-        for mode in ("", " graph"):
-            key = f"fredsnet {prec}{mode}"
-            if key not in t:
-                continue
-            ms, base = t[key], t.get(f"resnet50 {prec}{mode}", float("nan"))
-            print(f"TARGET FreDSNet forward 512x256 B1 {prec}{mode or ' eager'}: {1e3 / ms:.0f} fps ({ms:.2f} ms) = "
-                  f"{ms / base:.2f}x resnet50 forward ({base:.2f} ms) "
-                  f"(target >= 100 fps: {'met' if 1e3 / ms >= 100 else 'MISSED'})")
+    jobs, labels = {}, []
+    for prec in PRECISIONS:
+        for fmt, ms, inp in (("", models, x), (" channels-last", cl, x_cl)):
+            label = f"eager {prec}{fmt}"
+            labels.append(label)
+            for name, m in ms.items():
+                jobs[f"{name} {label}"] = forward(m, prec, inp)
+    cprec = a.amp if a.amp != "none" else "fp32"
+    for mode in a.compile_modes:
+        label = f"compiled {mode} {cprec}"
+        if not budget.allows(f"FreDSNet and resnet50 {label}"):
+            continue
+        try:
+            for name, m in models.items():
+                jobs[f"{name} {label}"] = compiled_once(
+                    f"{name} {label}", forward(compiled_for_inference(copy.deepcopy(m), mode, dev), cprec, x))
+            labels.append(label)
+        except Exception as e:  # noqa: BLE001 -- reported; the eager figures still stand
+            print(f"# {label}: not compiled ({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''})")
+            traceback.print_exc()
+            for name in models:
+                jobs.pop(f"{name} {label}", None)
+    t = cuda_times(jobs, a.reps)
+    for label in labels:
+        ms, base = med(t, f"fredsnet {label}"), med(t, f"resnet50 {label}")
+        fps = 1e3 / ms
+        print(target_line(f"FreDSNet forward 512x256 B1 {label}", f"{fps:.0f} fps ({ms:.2f} ms)",
+                          ratio(t, f"fredsnet {label}", f"resnet50 {label}"),
+                          f"resnet50 forward {label} ({base:.2f} ms)", f">= {FPS_TARGET:.0f} fps", fps >= FPS_TARGET))
 
 
-# block-size candidates of the fused kernels (omnidl.nn.triton_conv.TUNE) timed beside its own choice
-FWD_CONFIGS = {"p64 n64 c16 w4": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=16, num_warps=4, num_stages=1),
-               "p64 n128 c16 w4": dict(BLOCK_P=64, BLOCK_N=128, BLOCK_C=16, num_warps=4, num_stages=1),
-               "p128 n128 c16 w8": dict(BLOCK_P=128, BLOCK_N=128, BLOCK_C=16, num_warps=8, num_stages=1),
-               "p64 n64 c32 w8": dict(BLOCK_P=64, BLOCK_N=64, BLOCK_C=32, num_warps=8, num_stages=1),
-               "p128 n64 c32 w8": dict(BLOCK_P=128, BLOCK_N=64, BLOCK_C=32, num_warps=8, num_stages=1)}
-BWD_CONFIGS = {"gcols p128 c64 n32 s2": {"gcols": dict(BLOCK_P=128, BLOCK_C=64, BLOCK_N=32, num_warps=4, num_stages=2)},
-               "gcols p64 c64 n32 s3": {"gcols": dict(BLOCK_P=64, BLOCK_C=64, BLOCK_N=32, num_warps=4, num_stages=3)},
-               "sell c32": {"sell": dict(BLOCK_C=32, num_warps=4)},
-               "wgrad r32 c32 n64": {"wgrad": dict(BLOCK_R=32, BLOCK_C=32, BLOCK_N=64, num_warps=4, num_stages=1)},
-               "wgrad r32 c64 n64 w8": {"wgrad": dict(BLOCK_R=32, BLOCK_C=64, BLOCK_N=64, num_warps=8, num_stages=1)}}
-
-
-def projected_conv(dev, reps: int) -> None:
-    """Part 2: ProjectedConv2d (fast backend) vs cuDNN conv2d, forward and forward+backward."""
+def projected_conv(dev, a, budget: Budget) -> None:
+    """Part ``conv``: ProjectedConv2d against cuDNN nn.Conv2d, forward and forward + backward."""
     from omnidl.cameras import Equirectangular
-    from omnidl.nn import ProjectedConv2d, triton_conv
-    fused_vs_grid = {}
-    for C, H, W in ((64, 128, 256), (256, 64, 128)):
+    from omnidl.nn import ProjectedConv2d
+    for C, H, W in CONV_CONFIGS:
         torch.manual_seed(0)
-        fast = ProjectedConv2d(C, C, 3, padding=1, camera=Equirectangular(width=W, height=H)).to(dev)
+        proj = ProjectedConv2d(C, C, 3, padding=1, camera=Equirectangular(width=W, height=H)).to(dev)
         conv = torch.nn.Conv2d(C, C, 3, padding=1).to(dev)
-        conv.load_state_dict(fast.state_dict())
+        conv.load_state_dict(proj.state_dict())
         xi = torch.randn(1, C, H, W, device=dev)
         xg = xi.clone().requires_grad_(True)
-        backend = "triton_conv" if triton_conv.applies(xi, fast.weight) else "grid_conv"
-        keep_enabled, triton_conv.ENABLED = triton_conv.ENABLED, True
-        fused = triton_conv.applies(xi, fast.weight)      # the fused kernels compile and pass their self-check here
-        triton_conv.ENABLED = keep_enabled
 
-        def f(m):
+        def fwd(m, xi=xi):
             def run():
                 with torch.no_grad():
                     m(xi)
             return run
 
-        def fb(m):
+        def fwd_bwd(m, xg=xg):
             def run():
                 xg.grad = None
                 m.zero_grad(set_to_none=True)
                 m(xg).sum().backward()
             return run
-
-        def exact(fn):                  # cuDNN without TF32
-            def run():
-                with torch.backends.cudnn.flags(enabled=True, benchmark=True, deterministic=False, allow_tf32=False):
-                    fn()
-            return run
-
-        def backend_set(fn, enabled, tune=None):   # the fused Triton kernels on/off, with block sizes ``tune``
-            def run():
-                keep = triton_conv.ENABLED, triton_conv.TUNE
-                triton_conv.ENABLED, triton_conv.TUNE = enabled, tune or {}
-                try:
-                    fn()
-                finally:
-                    triton_conv.ENABLED, triton_conv.TUNE = keep
-            return run
-        jobs = {"fast fwd": f(fast), "conv fwd": f(conv), "fast fwdbwd": fb(fast), "conv fwdbwd": fb(conv),
-                "conv32 fwd": exact(f(conv)), "conv32 fwdbwd": exact(fb(conv)),
-                "grid fwd": backend_set(f(fast), False), "grid fwdbwd": backend_set(fb(fast), False)}
-        if fused:
-            jobs.update({"triton fwd": backend_set(f(fast), True), "triton fwdbwd": backend_set(fb(fast), True)})
-            jobs.update({f"tune fwd {k}": backend_set(f(fast), True, {"fwd": v}) for k, v in FWD_CONFIGS.items()})
-            jobs.update({f"tune fwdbwd {k}": backend_set(fb(fast), True, v) for k, v in BWD_CONFIGS.items()})
-        t = _cuda_times(jobs, reps)
-        for what in ("fwd", "fwdbwd"):
-            r = t[f"fast {what}"] / t[f"conv {what}"]
-            print(f"TARGET ProjectedConv2d {what} {C}ch {H}x{W} B1 ({backend}): {t[f'fast {what}']:.3f} ms = {r:.2f}x "
-                  f"cuDNN conv2d ({t[f'conv {what}']:.3f} ms, TF32) "
-                  f"(target <= 1.5x: {'met' if r <= 1.5 else 'MISSED'}); "
-                  f"{t[f'fast {what}'] / t[f'conv32 {what}']:.2f}x cuDNN without TF32 ({t[f'conv32 {what}']:.3f} ms); "
-                  f"grid_conv backend {t[f'grid {what}']:.3f} ms ({t[f'grid {what}'] / t[f'conv {what}']:.2f}x); "
-                  + (f"fused Triton backend {t[f'triton {what}']:.3f} ms "
-                     f"({t[f'triton {what}'] / t[f'conv {what}']:.2f}x)"
-                     if fused else "fused Triton backend: not usable here (see the warning above)"))
-            if fused:
-                fused_vs_grid[f"{what} {C}ch"] = t[f"triton {what}"] / t[f"grid {what}"]
-            tunes = {k.split(" ", 2)[2]: v for k, v in t.items() if k.startswith(f"tune {what} ")}
-            if tunes:
-                print(f"#   block sizes, {what} {C}ch: " + ", ".join(f"{k}: {v:.3f} ms" for k, v in tunes.items()))
-    if fused_vs_grid:
-        faster = all(r < 1 for r in fused_vs_grid.values())
-        print("# fused Triton kernels / grid_conv: " + ", ".join(f"{k} {r:.2f}x" for k, r in fused_vs_grid.items())
-              + (": faster everywhere, triton_conv.ENABLED can default to on" if faster
-                 else ": not faster everywhere, keep triton_conv.ENABLED off by default"))
+        t = cuda_times({"projected fwd": fwd(proj), "conv fwd": fwd(conv),
+                        "projected fwdbwd": fwd_bwd(proj), "conv fwdbwd": fwd_bwd(conv)}, a.reps)
+        for what, name in (("fwd", "forward"), ("fwdbwd", "forward+backward")):
+            r = ratio(t, f"projected {what}", f"conv {what}")
+            print(target_line(f"ProjectedConv2d {name} {C}ch {H}x{W} B1 fp32", f"{med(t, f'projected {what}'):.3f} ms",
+                              r, f"cuDNN nn.Conv2d ({med(t, f'conv {what}'):.3f} ms)", f"<= {CONV_TARGET}x",
+                              r <= CONV_TARGET))
 
 
-def training_step(dev, reps: int, amp: str, amp_dtype) -> None:
-    """Part 3: a FreDSNet training step (CE + L1, SGD) at 256x128, batch 4."""
+def training_step(dev, a, budget: Budget) -> None:
+    """Part ``train``: a FreDSNet training step (CE + L1, SGD) at 256x128, batch 4, eager and compiled."""
+    from omnidl.engine.compile import compile_for_training
     from omnidl.models.fredsnet import FreDSNet
     torch.manual_seed(0)
     net = FreDSNet(backbone="resnet50", width=1.0).to(dev).train()
-    opt = torch.optim.SGD(net.parameters(), lr=1e-4)
+    opt = torch.optim.SGD(net.parameters(), lr=1e-4, momentum=0.9)
     xb = torch.rand(4, 3, 128, 256, device=dev)
-    lab = torch.randint(0, 14, (4, 128, 256), device=dev)
+    lab = torch.randint(0, net.num_classes, (4, 128, 256), device=dev)
     depth = torch.rand(4, 1, 128, 256, device=dev) * 5
+    aprec = a.amp if a.amp != "none" else None
+    scaler = torch.amp.GradScaler("cuda") if aprec == "fp16" else None
 
-    def step(amp_dt):
+    def step(model, prec):
         def run():
             opt.zero_grad(set_to_none=True)
-            with torch.autocast("cuda", dtype=amp_dt or torch.float32, enabled=amp_dt is not None):
-                out = net(xb)
+            with autocast(prec):
+                out = model(xb)
                 loss = F.cross_entropy(out["semantic"].float(), lab) + F.l1_loss(out["depth"].float(), depth)
-            loss.backward()
-            opt.step()
+            if prec == "fp16":
+                scaler.scale(loss).backward()
+                scaler.step(opt)
+                scaler.update()
+            else:
+                loss.backward()
+                opt.step()
         return run
-    jobs = {"step fp32": step(None)}
-    if amp_dtype is not None and amp_dtype == torch.bfloat16:  # fp16 would need a GradScaler
-        jobs[f"step {amp}"] = step(amp_dtype)
-    t = _cuda_times(jobs, max(5, reps // 2))
-    for k, ms in t.items():
-        print(f"FreDSNet training {k} 256x128 B4: {ms:.1f} ms ({4e3 / ms:.0f} images/s)")
+    precs = ["fp32"] + ([aprec] if aprec else [])
+    jobs = {f"eager {p}": step(net, p) for p in precs}
+    compiled = None
+    for p in ([] if a.no_compile_train else precs):
+        if not budget.allows(f"the compiled FreDSNet training step {p}"):
+            continue
+        try:
+            if compiled is None:                # one compiled module: autocast on/off recompiles it
+                compiled = compile_for_training(net, dev)
+            jobs[f"compiled {p}"] = compiled_once(f"FreDSNet training step compiled {p} (forward and backward)",
+                                                  step(compiled, p))
+        except Exception as e:  # noqa: BLE001 -- reported; the eager figures still stand
+            print(f"# compiled training step {p}: failed ({type(e).__name__}: "
+                  f"{str(e).splitlines()[0][:200] if str(e) else ''})")
+            traceback.print_exc()
+    t = cuda_times(jobs, max(5, a.reps // 2))
+    base = med(t, "eager fp32")
+    for k in jobs:
+        ms = med(t, k)
+        print(target_line(f"FreDSNet training step 256x128 B4 {k}", f"{ms:.1f} ms ({4e3 / ms:.0f} images/s)",
+                          ratio(t, k, "eager fp32"), f"eager fp32 step ({base:.1f} ms)"))
 
 
-def profile(dev, path: str, fredsnet: bool = True) -> None:
-    """The CUDA-time tables of one FreDSNet forward at 512x256 (``fredsnet``) and one ProjectedConv2d forward+backward
-    at 256 ch 64x128 (after warm-up), written to ``path``."""
+def profile(dev, path: str) -> None:
+    """The CUDA-time tables of one FreDSNet forward at 512x256 (eager float32) and one ProjectedConv2d forward +
+    backward at 256 ch 64x128, each after warm-up, written to ``path``."""
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as prof
 
-    text = ""
-    if fredsnet:
-        from omnidl.models.fredsnet import FreDSNet
-        net = FreDSNet(backbone="resnet50", width=1.0).to(dev).eval()
-        x = torch.rand(1, 3, 256, 512, device=dev)
-        with torch.no_grad():
-            for _ in range(3):
-                net(x)
-            torch.cuda.synchronize()
-            with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
-                net(x)
-                torch.cuda.synchronize()
-        text = "FreDSNet forward 512x256 B1 fp32\n" + p.key_averages().table(sort_by="cuda_time_total", row_limit=40)
     from omnidl.cameras import Equirectangular
+    from omnidl.models.fredsnet import FreDSNet
     from omnidl.nn import ProjectedConv2d
-    conv = ProjectedConv2d(256, 256, 3, padding=1, camera=Equirectangular(width=128, height=64)).to(dev)
-    xg = torch.randn(1, 256, 64, 128, device=dev, requires_grad=True)
 
-    def table(title: str) -> str:       # one forward+backward after 3 warm-ups
+    def table(title: str, fn: Callable[[], object], rows: int) -> str:
         for _ in range(3):
-            conv(xg).sum().backward()
+            fn()
         torch.cuda.synchronize()
         with prof(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as p:
-            conv(xg).sum().backward()
+            fn()
             torch.cuda.synchronize()
-        return f"\n\n{title}\n" + p.key_averages().table(sort_by="cuda_time_total", row_limit=25)
-    text += table("ProjectedConv2d 256ch 64x128 forward+backward")
-    from omnidl.nn import triton_conv
-    keep, triton_conv.ENABLED = triton_conv.ENABLED, True
-    try:
-        if triton_conv.applies(xg, conv.weight):
-            text += table("the same, fused Triton kernels")
-    finally:
-        triton_conv.ENABLED = keep
+        return f"{title}\n" + p.key_averages().table(sort_by="cuda_time_total", row_limit=rows) + "\n\n"
+    net = FreDSNet(backbone="resnet50", width=1.0).to(dev).eval()
+    x = torch.rand(1, 3, 256, 512, device=dev)
+
+    def forward():
+        with torch.no_grad():
+            net(x)
+    text = table("FreDSNet forward 512x256 B1 fp32 (eager)", forward, 40)
+    conv = ProjectedConv2d(256, 256, 3, padding=1, camera=Equirectangular(width=128, height=64)).to(dev)
+    xg = torch.randn(1, 256, 64, 128, device=dev, requires_grad=True)
+    text += table("ProjectedConv2d 256ch 64x128 forward+backward", lambda: conv(xg).sum().backward(), 25)
     Path(path).write_text(text)
     print(f"# profile written: {path}")
 
 
+PARTS = {"fps": fredsnet_fps, "conv": projected_conv, "train": training_step}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--reps", type=int, default=20)
-    ap.add_argument("--amp", default="bf16", choices=["bf16", "fp16", "none"])
-    ap.add_argument("--profile", default=None, help="write one FreDSNet forward's CUDA-time table here")
+    ap.add_argument("--device", default="cuda", help="a CUDA device (cuda, cuda:N)")
+    ap.add_argument("--reps", type=int, default=20, help="timed repetitions per job (training: half, at least 5)")
+    ap.add_argument("--amp", default="bf16", choices=["bf16", "fp16", "none"],
+                    help="autocast dtype of the compiled forward and of the AMP training step")
     ap.add_argument("--only", default="fps,conv,train", help="parts to run: fps, conv, train (comma-separated)")
+    ap.add_argument("--compile-modes", default="default,reduce-overhead",
+                    help="torch.compile modes of the fps part (comma-separated; 'none': no compiled forward)")
+    ap.add_argument("--no-compile-train", action="store_true", help="time the training step eager only")
+    ap.add_argument("--budget-s", type=float, default=200.0,
+                    help="start no new compilation after this many seconds (default 200)")
+    ap.add_argument("--profile", default=None, help="write the CUDA-time tables of one FreDSNet forward and one "
+                                                    "ProjectedConv2d forward+backward here")
     a = ap.parse_args(argv)
+    chosen = [p.strip() for p in a.only.split(",") if p.strip()]
+    unknown = [p for p in chosen if p not in PARTS]
+    if unknown:
+        ap.error(f"--only: unknown parts {unknown}; choose from {list(PARTS)}")
+    a.compile_modes = [m.strip() for m in a.compile_modes.split(",") if m.strip() and m.strip() != "none"]
     if not torch.cuda.is_available():
-        print("no CUDA device: benchmarks/gpu.py measured nothing (the GPU items are untested here)")
+        print("no CUDA device: nothing measured (benchmarks/gpu.py needs CUDA; the CPU figures come from "
+              "benchmarks/projected_conv.py and benchmarks/fredsnet.py)")
         return 0
     dev = torch.device(a.device)
+    if dev.type != "cuda":
+        ap.error(f"--device must be a CUDA device, got {a.device!r}")
+    torch.cuda.set_device(dev)
+    from torch import _dynamo
     torch.backends.cudnn.benchmark = True
-    amp_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "none": None}[a.amp]
-    print(f"# {torch.cuda.get_device_name(dev)}, torch {torch.__version__}, median of {a.reps} interleaved reps")
-    chosen = set(a.only.split(","))
-    parts = [part for name, part in (("fps", lambda: fredsnet_fps(dev, a.reps, a.amp, amp_dtype)),
-                                     ("conv", lambda: projected_conv(dev, a.reps)),
-                                     ("train", lambda: training_step(dev, a.reps, a.amp, amp_dtype)))
-             if name in chosen]
-    if a.profile:
-        parts.append(lambda: profile(dev, a.profile, fredsnet="fps" in chosen))
+    _allow_recompiles()
+    budget = Budget(a.budget_s)
+    print(f"# {torch.cuda.get_device_name(dev)}, torch {torch.__version__}, CUDA {torch.version.cuda}, cuDNN "
+          f"{torch.backends.cudnn.version()}; cudnn.benchmark on, TF32: convolutions "
+          f"{torch.backends.cudnn.allow_tf32}, matmul {torch.backends.cuda.matmul.allow_tf32} (PyTorch's defaults); "
+          f"median of {a.reps} interleaved reps", flush=True)
     failed = 0
-    for part in parts:
+    for name in chosen:
+        t0 = time.perf_counter()
         try:
-            part()
+            PARTS[name](dev, a, budget)
         except Exception:  # noqa: BLE001 -- one part's failure must not hide the others' figures
             failed += 1
             traceback.print_exc()
+        finally:
+            _dynamo.reset()                # frees the compiled graphs (and CUDA-graph pools) of the part
+            torch.cuda.empty_cache()
+        print(f"# part {name}: {time.perf_counter() - t0:.0f} s", flush=True)
+    if a.profile:
+        try:
+            profile(dev, a.profile)
+        except Exception:  # noqa: BLE001
+            failed += 1
+            traceback.print_exc()
+    print(f"# total {budget.spent():.0f} s")
     return 1 if failed else 0
 
 

@@ -99,3 +99,18 @@ def test_allocator_tag(environ, words):
     assert (tag == "") == (not words), tag
     for w in words:
         assert w in tag, tag
+
+
+@pytest.mark.parametrize("target, ok, loaded, expected", [
+    (None, None, False, "TARGET x: 2.00 ms = 1.25x conv (1.60 ms)"),
+    ("<= 1.5x", True, False, "TARGET x: 2.00 ms = 1.25x conv (1.60 ms) (target <= 1.5x: met)"),
+    ("<= 1.0x", False, True, "TARGET x: 2.00 ms = 1.25x conv (1.60 ms) (target <= 1.0x: MISSED) [taken under load]"),
+])
+def test_target_line(monkeypatch, target, ok, loaded, expected):
+    # the line every benchmark prints (benchmarks/run_all.sh collects them), the allocator tag at its end
+    for k in (*_timing.ALLOCATOR_VARS, "THP_MEM_ALLOC_ENABLE", "GLIBC_TUNABLES", "LD_PRELOAD"):
+        monkeypatch.delenv(k, raising=False)
+    assert _timing.target_line("x", "2.00 ms", 1.25, "conv (1.60 ms)", target, ok, loaded) == expected
+    monkeypatch.setenv("THP_MEM_ALLOC_ENABLE", "1")
+    tagged = _timing.target_line("x", "2.00 ms", 1.25, "conv (1.60 ms)", target, ok, loaded)
+    assert tagged.startswith(expected + " [allocator: THP_MEM_ALLOC_ENABLE=1"), tagged
