@@ -257,6 +257,18 @@ int omnidl_foc_forward(const float *x, int64_t x_img, int C, int H, int W, const
     return err;
 }
 
+/* gout's rows of positions [p, p + m) of one image (`g`: the image's gout): in place for rows (`planes` 0), else the
+ * block of the channel planes copied into `buf` (m, cout), channel by channel. Read in place, the planes' values of
+ * one position lie P floats apart, a power of two for most maps: every one in the same L1 set. */
+static const float *gout_rows(const float *g, int planes, int64_t P, int64_t p, int m, int cout, float *buf) {
+    if (!planes) return g + p * cout;
+    for (int c = 0; c < cout; ++c) {
+        const float *src = g + c * P + p;
+        for (int r = 0; r < m; ++r) buf[(int64_t)r * cout + c] = src[r];
+    }
+    return buf;
+}
+
 /* The input rows (flat over the batch: b * pixels + pixel) that positions [s0, s1) of the batch touch: [*lo, *hi) */
 static void touched_rows(const taps_t *tp, int K, int64_t P, int64_t s0, int64_t s1, int64_t *lo, int64_t *hi) {
     const int64_t pixels = (int64_t)tp->H * tp->W;
@@ -292,10 +304,6 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
     const int KC = K * C;
     const int64_t total = (int64_t)B * P;
     const int gw_by_channels = split_channels(total, block, nthreads, cout);
-    /* gout's element (position r, channel c) of a block at g[r * grs + c * gcs] */
-    const int64_t grs = planes ? 1 : cout, gcs = planes ? P : 1;
-    const float *gplanes = planes ? gout : NULL;  /* (for the BLAS calls' transposed operands) */
-    (void)gplanes;
     float *gxr = planes && gx ? (float *)calloc((size_t)(B * x_img), sizeof(float)) : gx;  /* rows accumulated */
     float **pgw = (float **)calloc((size_t)nthreads, sizeof(float *));
     float **pgx = (float **)calloc((size_t)nthreads, sizeof(float *));
@@ -317,11 +325,12 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
             team(&t, &nt);
             const int64_t s0 = span_edge(total, t, nt), s1 = span_edge(total, t + 1, nt);
             float *A = (float *)malloc(sizeof(float) * (size_t)(block * KC));
+            float *gb = planes ? (float *)malloc(sizeof(float) * (size_t)(block * cout)) : NULL;
 #if HAVE_KERNEL
             float *gp = (float *)malloc(sizeof(float) * (size_t)packed_floats(block, cout));
-            int ok = A && gp;
+            int ok = A && gp && (gb || !planes);
 #else
-            int ok = A != NULL;
+            int ok = A && (gb || !planes);
 #endif
             /* thread 0 writes the results directly, the others private copies (none for an empty share) */
             float *mygw = t == 0 || gw_by_channels ? gw : NULL, *mygx = t == 0 ? gxr : NULL;
@@ -343,7 +352,7 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                 for (int64_t s = w0; mygw && c1 > c0 && s < w1;) {
                     const int64_t b = s / P, p = s % P;
                     const int m = (int)min64(block, min64(w1 - s, P - p));
-                    const float *g = gout + (planes ? b * cout * P + p : (b * P + p) * cout);
+                    const float *g = gout_rows(gout + b * P * cout, planes, P, p, m, cout, gb);
                     gather(x + b * x_img, C, &tp, p * K, (p + m) * K, A);
 #if HAVE_KERNEL  /* gw[:, c0:c1] (KC, cout) += A^T g[:, c0:c1] */
                     for (int q = 0; q < (c1 - c0 + NR - 1) / NR; ++q) {  /* this thread's panels of g, packed */
@@ -351,14 +360,13 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                         float *d = gp + (int64_t)q * m * NR;
                         for (int r = 0; r < m; ++r) {
                             int j = 0;
-                            for (; j < nr; ++j) d[r * NR + j] = g[r * grs + (c0 + q * NR + j) * gcs];
+                            for (; j < nr; ++j) d[r * NR + j] = g[(int64_t)r * cout + c0 + q * NR + j];
                             for (; j < NR; ++j) d[r * NR + j] = 0.0f;
                         }
                     }
                     gemm_packed(KC, c1 - c0, m, A, 1, KC, gp, mygw + c0, cout, 1, NULL);
 #else
-                    blas_rows('T', planes ? 'T' : 'N', KC, cout, m, 1.0f, A, KC, g, planes ? (int)P : cout, mygw,
-                              cout);
+                    blas_rows('T', 'N', KC, cout, m, 1.0f, A, KC, g, cout, mygw, cout);
 #endif
                     s += m;
                 }
@@ -367,11 +375,11 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                 for (int64_t s = s0; base && s < s1;) {
                     const int64_t b = s / P, p = s % P;
                     const int m = (int)min64(block, min64(s1 - s, P - p));
-                    const float *g = gout + (planes ? b * cout * P + p : (b * P + p) * cout);
+                    const float *g = gout_rows(gout + b * P * cout, planes, P, p, m, cout, gb);
 #if HAVE_KERNEL
-                    gemm_packed(m, KC, cout, g, grs, gcs, wtp, A, KC, 0, NULL);  /* A (m, KC) = g Wm^T */
+                    gemm_packed(m, KC, cout, g, cout, 1, wtp, A, KC, 0, NULL);  /* A (m, KC) = g Wm^T */
 #else
-                    blas_rows(planes ? 'T' : 'N', 'N', m, KC, cout, 0.0f, g, planes ? (int)P : cout, wt, KC, A, KC);
+                    blas_rows('N', 'N', m, KC, cout, 0.0f, g, cout, wt, KC, A, KC);
 #endif
                     scatter(base + b * x_img, C, &tp, p * K, (p + m) * K, A);
                     s += m;
@@ -413,6 +421,7 @@ int omnidl_foc_backward(const float *x, int64_t x_img, int C, int H, int W, cons
                 }
             }
             free(A);
+            free(gb);
 #if HAVE_KERNEL
             free(gp);
 #endif
