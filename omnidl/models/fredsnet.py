@@ -116,12 +116,17 @@ class FusionHead(nn.Module):
                                padding="circular", camera=out_camera)
 
     def forward(self, maps: Sequence[Tensor]) -> Tensor:
+        """``maps`` from coarse to fine; the last one sets the output size and needs no up-sampling. Each weight
+        ``w_i`` multiplies ``m_i`` before its up-sampling (the same: up-sampling is linear), on the smaller map."""
         size = (maps[-1].shape[-2], maps[-1].shape[-1])
-        ups = [F.interpolate(med(d), size=size, mode="bilinear", align_corners=True)
-               for med, d in zip(self.mediators, maps)]
-        fused = ups[0]
-        for i, u in enumerate(ups[1:]):
-            fused = fused + self.branch_weights[i] * u
+        fused = None
+        for i, (mediator, d) in enumerate(zip(self.mediators, maps)):
+            m = mediator(d)
+            if i > 0:
+                m = self.branch_weights[i - 1] * m
+            if i < len(maps) - 1:
+                m = F.interpolate(m, size=size, mode="bilinear", align_corners=True)
+            fused = m if fused is None else fused + m
         return self.out(fused)
 
 
