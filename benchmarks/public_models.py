@@ -260,7 +260,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("which", choices=sorted(FILES))
     ap.add_argument("--ref-dir", default=None, help="folder with the public model file (never committed)")
-    ap.add_argument("--sizes", nargs="+", default=None, help="HxW (default: the target sizes)")
+    ap.add_argument("--sizes", nargs="*", default=None, help="HxW (default: the target sizes; none: skip)")
     ap.add_argument("--forward-sizes", nargs="*", default=["256x512"], help="fredsnet: HxW of the forward")
     ap.add_argument("--compile", action="store_true", help="also omnidl compiled (torch.compile, Inductor)")
     ap.add_argument("--threads", type=int, default=2)
@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         return []
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
-    sizes = a.sizes or (["512x1024", "256x512"] if a.which == "horizonnet" else ["128x256"])
+    sizes = a.sizes if a.sizes is not None else (["512x1024", "256x512"] if a.which == "horizonnet" else ["128x256"])
     hw = [tuple(int(v) for v in s.lower().split("x")) for s in sizes]
     print(f"torch {torch.__version__}, {a.threads} threads, {a.reps} reps", flush=True)
     print(host_line(), flush=True)

@@ -88,11 +88,12 @@ def _capture_rnns() -> None:
 
 
 def compile_for_training(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
-    """``torch.compile(model)`` (Inductor, default mode) after :func:`check_inductor`; ``model`` is the module
-    the training step calls (the DDP wrapper under DDP)."""
+    """``torch.compile(model, dynamic=False)`` (Inductor, default mode) after :func:`check_inductor`; ``model`` is
+    the module the training step calls (the DDP wrapper under DDP). Static shapes: a run trains at one size, and a
+    model compiled before at another size would otherwise be recompiled with symbolic sizes."""
     check_inductor(device, "trainer.compile=true", "Set trainer.compile=false")
     _capture_rnns()
-    return torch.compile(model)
+    return torch.compile(model, dynamic=False)
 
 
 class FrozenInference(torch.nn.Module):
@@ -103,7 +104,7 @@ class FrozenInference(torch.nn.Module):
     def __init__(self, model: torch.nn.Module):
         super().__init__()
         _capture_rnns()
-        self.compiled = torch.compile(model)
+        self.compiled = torch.compile(model, dynamic=False)
 
     def forward(self, *args, **kwargs):
         import torch._inductor.config as inductor_config
