@@ -156,10 +156,12 @@ def test_fx_symbolic_trace(name, conv):
 def test_compile_fullgraph_training_step_matches_eager(name, conv):
     """Dynamo captures the whole model as one graph (``fullgraph=True``), forward and backward through AOT autograd
     (backend ``aot_eager``: the capture without Inductor's code generation, which ``test_inductor_compile_matches_eager``
-    covers). ``nn.LSTM`` (HorizonNet) needs Dynamo's ``allow_rnn``, which ``trainer.compile`` sets too."""
+    covers). In float64, so that the comparison measures the capture, not float32 summation order through fifty layers
+(a first-layer gradient differs by ~6e-5 in float32 when AOT autograd reorders a reduction). ``nn.LSTM`` (HorizonNet)
+needs Dynamo's ``allow_rnn``, which ``trainer.compile`` sets too."""
     torch._dynamo.reset()
     model, x = build(name, conv)
-    without_dropout(model).train()
+    model, x = without_dropout(model).double().train(), x.double()
     compiled = torch.compile(model, fullgraph=True, dynamic=False, backend="aot_eager")
     results = []
     with torch._dynamo.config.patch(allow_rnn=True):
