@@ -40,7 +40,8 @@ KB_FILE_FIELDS = ("cx", "cy", "fx", "fy", "width", "height", "fov_deg", "k1", "k
 def read_kb_calibration(path: str | Path) -> dict[str, Any]:
     """Read a KB calibration text file (``cx cy fx fy W H FOV k1 k2 k3 k4``) into camera fields.
 
-    Raises ``ValueError`` naming the file when it does not hold exactly 11 numbers.
+    Raises ``ValueError`` naming the file when it does not hold exactly 11 numbers, or when the FOV (degrees) is
+    under 10 deg (probably written in radians).
     """
     path = Path(path)
     try:
@@ -59,6 +60,12 @@ def read_kb_calibration(path: str | Path) -> dict[str, Any]:
         if v[key] != int(v[key]) or v[key] <= 0:
             raise ValueError(f"Kannala-Brandt calibration file {str(path)!r}: {key} must be a positive integer, "
                              f"got {v[key]}")
+    from .io._common import MIN_FOV_DEG
+    fov = v["fov_deg"]
+    if 0 < fov < MIN_FOV_DEG:
+        raise ValueError(f"Kannala-Brandt calibration file {str(path)!r}: FOV (7th value) = {fov:g} deg is under "
+                         f"{MIN_FOV_DEG:g} deg; the file gives the field of view in degrees (was it written in "
+                         f"radians? {fov:g} rad = {math.degrees(fov):.4g} deg)")
     return dict(width=int(v["width"]), height=int(v["height"]), fx=v["fx"], fy=v["fy"], cx=v["cx"], cy=v["cy"],
                 k0=1.0, k1=v["k1"], k2=v["k2"], k3=v["k3"], k4=v["k4"], max_fov=math.radians(v["fov_deg"]))
 

@@ -19,7 +19,7 @@ from omnidl.cameras import (CAMERA_CONFIG_DIR, Equirectangular, KannalaBrandt, P
                             check_image_size, get_camera_class, io, list_cameras, resolve_camera)
 from omnidl.cameras.validate import Domain
 
-from .verdicts import ERROR, OK, expect, row
+from .verdicts import ERROR, OK, SKIP, expect, row
 
 KB_GOOD = "540 480 287 287 1080 960 195 0 0 0 0"
 
@@ -404,3 +404,95 @@ def test_resized_equirect_is_a_full_panorama_again():
     """A valid resize still works after the checks (OK control)."""
     cam = Equirectangular(width=64, height=32).resized(32, 16)
     assert cam.wraps_horizontally and cam.size == (32, 16)
+
+
+# -- table 4: plausibility at the loaders, new interchange inputs (issues 48 item 4, 49 item 3) -----------------
+def text_file(name: str, text: str, **load_kwargs):
+    """A maker: ``text`` written to ``tmp/name`` and loaded by ``io.load``."""
+    def make(tmp: Path):
+        p = tmp / name
+        p.write_text(text)
+        return io.load(p, **load_kwargs)
+    return make
+
+
+def colmap_row(model: str, w: int, h: int, params: str) -> str:
+    return f"# Camera list with one line of data per camera:\n1 {model} {w} {h} {params}\n"
+
+
+def kalibr_node(intrinsics: str, dist: str = "radtan", coeffs: str = "[-0.28, 0.07, 0.0002, 0.00002]",
+                res: str = "[752, 480]", header: str = "") -> str:
+    return (f"{header}cam0:\n  camera_model: pinhole\n  intrinsics: {intrinsics}\n  distortion_model: {dist}\n"
+            f"  distortion_coeffs: {coeffs}\n  rostopic: /cam0/image_raw\n  resolution: {res}\n")
+
+
+def tutorial(width="640", height="480", k="6.57e+002, 0., 3.195e+002, 0., 6.57e+002, 2.395e+002, 0., 0., 1."):
+    return ("%YAML:1.0\ncalibration_Time: \"08/19/11 20:44:38\"\n"
+            f"image_Width: {width}\nimage_Height: {height}\nflagValue: 14\n"
+            f"Camera_Matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ {k} ]\n"
+            "Distortion_Coefficients: !!opencv-matrix\n   rows: 5\n   cols: 1\n   dt: d\n"
+            "   data: [ -0.418, 0.507, 0., 0., -0.578 ]\n")
+
+
+PLAUS = r"calibration file '.*{}': the principal point \(cx, cy\) = \({}\) lies outside the {} image"
+KAL = r"Kalibr camchain '.*camchain\.yaml' node 'cam0'"
+PLAUSIBILITY = [
+    row("p01-colmap-principal-point-outside", text_file("cameras.txt", colmap_row("PINHOLE", 640, 480,
+                                                                                  "300 300 900 240")),
+        verdict=SKIP, match=PLAUS.format(r"cameras\.txt", "900, 240", "640x480")),
+    row("p02-kalibr-principal-point-negative",
+        text_file("camchain.yaml", kalibr_node("[458.6, 457.3, -20.5, 248.4]")), verdict=SKIP,
+        match=PLAUS.format(r"camchain\.yaml", "-20, 248.9", "752x480")),
+    row("p03-opencv-tutorial-width-height-swapped", text_file("out_camera_data.yml", tutorial("480", "640",
+        "6.57e+002, 0., 6.395e+002, 0., 6.57e+002, 2.395e+002, 0., 0., 1.")), verdict=SKIP,
+        match=PLAUS.format(r"out_camera_data\.yml", "640, 240", "480x640") + r".*swapped"),
+    row("p04-kb-txt-fov-in-radians", text_file("kb.txt", "540 480 287 287 1080 960 3.4 0 0 0 0"), verdict=ERROR,
+        match=r"Kannala-Brandt calibration file '.*kb\.txt': FOV \(7th value\) = 3\.4 deg is under 10 deg.*"
+              r"3\.4 rad = 194\.8 deg"),
+    row("p05-omnidl-yaml-max-fov-tiny", text_file("cam.yaml", "type: kannala_brandt\nwidth: 64\nheight: 64\nfx: 17.0\n"
+                                                  "fy: 17.0\ncx: 32.0\ncy: 32.0\nmax_fov: 0.1\n"), verdict=SKIP,
+        match=r"cam\.yaml': kannala_brandt max_fov = 0\.1 rad \(5\.73 deg\) is under 10 deg"),
+    row("p06-kalibr-yaml-header-fx-inf", text_file("camchain.yaml", kalibr_node("[.inf, 457.3, 367.2, 248.4]",
+                                                                               header="%YAML:1.0\n---\n")),
+        verdict=ERROR, match=rf"{KAL}: .*fx must be finite .*inf"),
+    row("p07-kalibr-resolution-0", text_file("camchain.yaml", kalibr_node("[458.6, 457.3, 367.2, 248.4]",
+                                                                         res="[0, 480]")),
+        verdict=ERROR, match=rf"{KAL}: resolution\[0\] must be a positive integer, got 0"),
+    row("p08-kalibr-equidistant-3-coeffs", text_file("camchain.yaml", kalibr_node(
+        "[458.6, 457.3, 367.2, 248.4]", "equidistant", "[0.01, 0.002, 0.0003]")), verdict=ERROR,
+        match=rf"{KAL}: equidistant distortion_coeffs are \[k1, k2, k3, k4\], got 3 values"),
+    row("p09-kalibr-intrinsics-not-numbers", text_file("camchain.yaml", kalibr_node("[fu, 457.3, 367.2, 248.4]")),
+        verdict=ERROR, match=rf"{KAL}: intrinsics .* must be numbers"),
+    row("p10-opencv-tutorial-width-0", text_file("out_camera_data.yml", tutorial("0")), verdict=ERROR,
+        match=r"OpenCV FileStorage file '.*out_camera_data\.yml': image_Width must be a positive integer, got 0"),
+    row("p11-opencv-tutorial-fx-nan", text_file("out_camera_data.yml", tutorial(
+        k=".nan, 0., 3.195e+002, 0., 6.57e+002, 2.395e+002, 0., 0., 1.")), verdict=ERROR,
+        match=r"OpenCV FileStorage file '.*out_camera_data\.yml': .*fx must be finite .*nan"),
+    row("p12-colmap-division-fx-0", text_file("cameras.txt", colmap_row("DIVISION", 640, 480, "0 300 320 240 -0.1")),
+        verdict=ERROR, match=r"COLMAP file '.*cameras\.txt' line 2 .*division model focal lengths must be > 0"),
+    row("p13-colmap-division-k-nan", text_file("cameras.txt", colmap_row("SIMPLE_DIVISION", 640, 480,
+                                                                          "300 320 240 nan")),
+        verdict=ERROR, match=r"COLMAP file '.*cameras\.txt' line 2 .*scaramuzza camera: pol must hold finite numbers"),
+    row("p14-colmap-spherical-is-not-a-model", text_file("cameras.txt", colmap_row("SPHERICAL", 640, 320, "640 320")),
+        verdict=ERROR, match=r"COLMAP has no camera model 'SPHERICAL'.*EQUIRECTANGULAR \(model id 17"),
+    row("p15-yaml-python-object-tag", text_file("cam.yaml", "type: !!python/object/apply:os.getcwd []\n"),
+        verdict=ERROR, match=r"cam\.yaml.*refused: the YAML tag '!!python/object/apply:os\.getcwd' would construct"),
+    row("p16-kalibr-python-name-tag", text_file("camchain.yaml", "cam0: !!python/name:os.system\n"), verdict=ERROR,
+        match=r"camchain\.yaml.*refused: the YAML tag '!!python/name:os\.system'"),
+    row("p17-kalibr-equidistant-ok", text_file("camchain.yaml", kalibr_node(
+        "[190.97, 190.97, 254.93, 256.89]", "equidistant", "[0.0034, 0.0007, -0.0020, 0.0002]", "[512, 512]")),
+        verdict=OK),
+    row("p18-opencv-tutorial-ok", text_file("out_camera_data.yml", tutorial()), verdict=OK),
+    row("p19-colmap-division-ok", text_file("cameras.txt", colmap_row("DIVISION", 640, 480, "300 301 320 240 -0.1")),
+        verdict=OK),
+]
+
+
+@pytest.mark.parametrize("make,verdict,match", PLAUSIBILITY)
+def test_plausibility_and_new_interchange_inputs(make, verdict, match, tmp_path):
+    import warnings
+    with warnings.catch_warnings():
+        if verdict == OK:  # OK rows load without an ImplausibleCalibrationWarning
+            warnings.simplefilter("error", io.ImplausibleCalibrationWarning)
+        out = expect(lambda: make(tmp_path), verdict, match)
+    assert verdict == ERROR or torch.isfinite(out.project(torch.tensor([[0.0, 0.0, 1.0]], dtype=D))[0]).all()

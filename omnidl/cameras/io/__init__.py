@@ -21,19 +21,32 @@ omnidl       omnidl's camera YAML (``{type: ..., **fields}``)            every r
 Detection (:func:`detect_format`) uses the suffix and the content: ``.bin`` is COLMAP; a text file whose
 first data line is ``ID MODEL W H ...`` is COLMAP, one with OCamCalib's comments is OCamCalib, eleven
 numbers are the KB text; YAML/XML is ORB-SLAM3 (``Camera.*``/``Camera1.*`` keys), Kalibr (``camN`` nodes
-with ``camera_model``), omnidl (``type``) or OpenCV (``camera_matrix``/``K``...).
+with ``camera_model``), omnidl (``type``) or OpenCV (``camera_matrix``/``Camera_Matrix``/``K``...).
+
+Safety and trust. Every YAML file is read with a safe loader: a tag that would construct a Python object
+(``!!python/object``...) raises :class:`UnsafeYAMLError`. :func:`load` warns
+(:class:`ImplausibleCalibrationWarning`) about a principal point outside the image or a ``max_fov`` under
+10 deg (see :mod:`~omnidl.cameras.io._plausible`). :func:`save` is lossless or refuses: it writes to a
+temporary file, reads it back and writes the destination only when the camera read back projects a dense
+grid of directions to the same pixels with the same validity mask (:mod:`~omnidl.cameras.io._lossless`);
+otherwise :class:`UnsupportedModelError` names what the format cannot hold (e.g. a 195 deg Kannala-Brandt
+camera in COLMAP, Kalibr, OpenCV or ORB-SLAM3, whose models stop at 180 deg) and nothing is written.
 """
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ...utils.io import atomic_write_text
+from ...utils.io import atomic_write_bytes
 from ..base import Camera
 from . import colmap, kalibr, kb_txt, ocamcalib, opencv_storage, orbslam3
-from ._common import OPENCV_SHIFT, UnsupportedModelError, family_of, make
+from ._common import (OPENCV_SHIFT, ImplausibleCalibrationWarning, UnsafeYAMLError, UnsupportedModelError, family_of,
+                      make, safe_yaml)
+from ._lossless import check_round_trip
+from ._plausible import check_plausible
 
 FORMATS = ("colmap", "kalibr", "opencv", "orbslam3", "ocamcalib", "kb_txt", "woodscape", "omnidl")
 #: suffixes :func:`load` (and ``resolve_camera``) treat as calibration files
@@ -41,7 +54,7 @@ SUFFIXES = (".txt", ".calib", ".dat", ".bin", ".yaml", ".yml", ".xml", ".json")
 MULTI = ("colmap", "kalibr", "orbslam3")
 
 __all__ = ["load", "load_all", "save", "detect_format", "FORMATS", "SUFFIXES", "OPENCV_SHIFT",
-           "UnsupportedModelError"]
+           "UnsupportedModelError", "UnsafeYAMLError", "ImplausibleCalibrationWarning"]
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -65,6 +78,8 @@ def detect_format(path: str | os.PathLike) -> str:
         return "opencv"
     try:
         data = opencv_storage.parse_yaml(text, f"calibration file {str(path)!r}")
+    except UnsafeYAMLError:
+        raise
     except ValueError:
         data = None
     if data is not None:
@@ -105,7 +120,8 @@ def _read(path: Path, fmt: str, camera: Any, options: dict[str, Any]) -> Camera:
     if fmt == "omnidl":
         from ..registry import build
         from ..resolve import _load_yaml
-        return build(_load_yaml(path))
+        safe_yaml(path.read_text(), f"camera YAML {str(path)!r}")  # refuses Python tags with a clear error
+        return build(_load_yaml(path))  # OmegaConf's loader (a yaml.SafeLoader) for ${...} interpolations
     raise ValueError(f"unknown calibration format {fmt!r}; known: {list(FORMATS)}")
 
 
@@ -149,6 +165,7 @@ def load(path_or_spec: Any, image_size: tuple[int, int] | None = None, *, camera
     path = Path(path_or_spec)
     fmt = format or detect_format(path)
     cam = _read(path, fmt, camera, dict(options))
+    check_plausible(cam, f"{fmt} calibration file {str(path)!r}")
     return _fit(cam, image_size, size_policy, str(path))
 
 
@@ -157,10 +174,14 @@ def load_all(path: str | os.PathLike, format: str | None = None) -> dict[Any, Ca
     path = Path(path)
     fmt = format or detect_format(path)
     if fmt == "colmap":
-        return dict(colmap.read_all(path))
-    if fmt == "kalibr":
-        return dict(kalibr.read_all(path))
-    return {0: _read(path, fmt, None, {})}
+        cams = dict(colmap.read_all(path))
+    elif fmt == "kalibr":
+        cams = dict(kalibr.read_all(path))
+    else:
+        cams = {0: _read(path, fmt, None, {})}
+    for key, cam in cams.items():
+        check_plausible(cam, f"{fmt} calibration file {str(path)!r} camera {key!r}")
+    return cams
 
 
 def _format_for(path: Path, camera: Any) -> str:
@@ -179,12 +200,49 @@ def _format_for(path: Path, camera: Any) -> str:
                      f"{list(FORMATS)})")
 
 
+def _dumps(camera: Camera | Mapping[Any, Camera], path: Path, fmt: str) -> bytes:
+    """The bytes of ``camera`` as a ``fmt`` file named like ``path``."""
+    writers = {"colmap": colmap, "kalibr": kalibr, "opencv": opencv_storage, "orbslam3": orbslam3,
+               "ocamcalib": ocamcalib, "kb_txt": kb_txt}
+    if fmt in writers:
+        return writers[fmt].dumps(camera, path)
+    if fmt == "woodscape":
+        first = next(iter(camera.values())) if isinstance(camera, Mapping) else camera
+        raise UnsupportedModelError(f"format 'woodscape' is read-only in omnidl (no writer), cannot save this "
+                                    f"{family_of(first)!r} camera; save it as 'omnidl' YAML or another format")
+    import yaml
+    return yaml.safe_dump(camera.to_config(), sort_keys=False).encode()
+
+
+def _verify(camera: Camera | Mapping[Any, Camera], probe: Path, fmt: str) -> None:
+    """Read ``probe`` back and check every camera with :func:`check_round_trip`."""
+    cams = dict(camera) if isinstance(camera, Mapping) else {None: camera}
+    try:
+        if isinstance(camera, Mapping):
+            back = load_all(probe, format=fmt)
+            back = {k: back[int(k) if fmt == "colmap" else kalibr.node_name(k)] for k in cams}
+        else:
+            back = {None: _read(probe, fmt, None, {})}
+    except (ValueError, KeyError) as e:
+        first = next(iter(cams.values()))
+        raise UnsupportedModelError(f"format {fmt!r} cannot hold this {family_of(first)!r} camera: the file it "
+                                    f"would write does not read back ({e}); nothing was written") from None
+    for key, cam in cams.items():
+        check_round_trip(cam, back[key], fmt, "" if key is None else f"camera {key!r}")
+
+
 def save(camera: Camera | Mapping[Any, Camera], path: str | os.PathLike, format: str | None = None) -> Path:
     """Write ``camera`` (COLMAP/Kalibr also ``{id: Camera}``) to ``path`` in ``format``; returns the path.
 
     ``format`` defaults from the name: ``*.bin``/``*cameras.txt`` COLMAP, ``*.xml`` OpenCV, ``*camchain*.yaml``
-    Kalibr, other ``.yaml`` omnidl's camera YAML, ``.txt`` of a Scaramuzza camera OCamCalib. A model the
-    format cannot represent raises :class:`UnsupportedModelError` naming the format and the model.
+    Kalibr, other ``.yaml`` omnidl's camera YAML, ``.txt`` of a Scaramuzza camera OCamCalib.
+
+    Lossless or refused: the file is written to a temporary folder first and read back; only when every camera
+    read back sees what the given one sees (same projection of a dense grid of directions, validity mask
+    included; :func:`~omnidl.cameras.io._lossless.check_round_trip`) is it written (atomically) to ``path``.
+    A model the format cannot represent, or a camera it would change (a 195 deg fisheye cut to 180 deg, a
+    dropped coefficient), raises :class:`UnsupportedModelError` naming the format, the model and what would
+    change, and ``path`` is left untouched.
     """
     path = Path(path)
     fmt = format or _format_for(path, camera)
@@ -192,22 +250,10 @@ def save(camera: Camera | Mapping[Any, Camera], path: str | os.PathLike, format:
         raise ValueError(f"unknown calibration format {fmt!r}; known: {list(FORMATS)}")
     if isinstance(camera, Mapping) and fmt not in ("colmap", "kalibr"):
         raise ValueError(f"format {fmt!r} holds one camera; got a mapping of {len(camera)}")
-    if fmt == "colmap":
-        colmap.write(camera, path)
-    elif fmt == "kalibr":
-        kalibr.write(camera, path)
-    elif fmt == "opencv":
-        opencv_storage.write(camera, path)
-    elif fmt == "orbslam3":
-        orbslam3.write(camera, path)
-    elif fmt == "ocamcalib":
-        ocamcalib.write(camera, path)
-    elif fmt == "kb_txt":
-        kb_txt.write(camera, path)
-    elif fmt == "woodscape":
-        raise UnsupportedModelError("format 'woodscape' is read-only in omnidl (no writer); save the camera as "
-                                    "'omnidl' YAML or another format")
-    else:
-        import yaml
-        atomic_write_text(path, yaml.safe_dump(camera.to_config(), sort_keys=False))
+    data = _dumps(camera, path, fmt)
+    with tempfile.TemporaryDirectory(prefix="omnidl-save-") as tmp:
+        probe = Path(tmp) / path.name
+        probe.write_bytes(data)
+        _verify(camera, probe, fmt)
+    atomic_write_bytes(path, data)
     return path

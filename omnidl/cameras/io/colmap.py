@@ -20,6 +20,8 @@ SIMPLE_RADIAL_FISHEYE (8)       f, cx, cy, k                                   k
 RADIAL_FISHEYE (9)              f, cx, cy, k1, k2                              kannala_brandt
 THIN_PRISM_FISHEYE (10)         fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1   see below
 RAD_TAN_THIN_PRISM_FISHEYE (11) fx, fy, cx, cy, k0..k5, p0, p1, s0..s3         fisheye624
+SIMPLE_DIVISION (12)            f, cx, cy, k                                   scaramuzza (see below)
+DIVISION (13)                   fx, fy, cx, cy, k                              scaramuzza (see below)
 SIMPLE_FISHEYE (14), FISHEYE    f, cx, cy  /  fx, fy, cx, cy (equidistant)     kannala_brandt
 EUCM (16)                       fx, fy, cx, cy, alpha, beta                    eucm
 EQUIRECTANGULAR (17)            w, h (full sphere)                             equirect
@@ -30,9 +32,26 @@ which is Kannala–Brandt with ``k0 = 1``. THIN_PRISM_FISHEYE applies its radial
 thin-prism terms all to the *undistorted* ``theta (cos psi, sin psi)`` (``r^2 = theta^2``), while
 Fisheye624 applies tangential/thin-prism terms to the radially distorted point: the two agree exactly
 only when ``p1 = p2 = sx1 = sy1 = 0`` (-> kannala_brandt) or ``k1 = .. = k4 = 0`` (-> fisheye624); other
-THIN_PRISM_FISHEYE cameras raise :class:`UnsupportedModelError`. SIMPLE_DIVISION/DIVISION have no omnidl
-family (error). Fisheye families get ``max_fov = pi`` (COLMAP projects ``z > 0`` only), smaller when the
-theta polynomial stops increasing before 90 deg.
+THIN_PRISM_FISHEYE cameras raise :class:`UnsupportedModelError`. Fisheye families get ``max_fov = pi``
+(COLMAP projects ``z > 0`` only), smaller when the theta polynomial stops increasing before 90 deg; a
+camera with a wider ``max_fov`` (a 195 deg lens) is refused by the writer instead of being cut to 180 deg.
+
+Division models (Fitzgibbon 2001; COLMAP's ``SimpleDivisionCameraModel``/``DivisionCameraModel``): a pixel
+lifts to ``(x0, y0) = ((x - cx) / fx, (y - cy) / fy)`` and the ray ``(x0, y0, 1 + k r^2)``, ``r^2 = x0^2 +
+y0^2``. That is exactly omnidl's Scaramuzza/OCamCalib model with ``pol = (-fx, 0, -k / fx)``, affine
+``c = fy / fx``, ``d = e = 0`` and the centre ``(cx, cy)`` (ray ``(x_s, y_s, -pol(rho))`` with ``x_s = x - cx``,
+``y_s = (y - cy) / c``, ``rho = fx r``), so no new family is needed. Differences to COLMAP's code: COLMAP's
+``ImgFromCam`` of these models does not check cheirality (with ``k >= 0`` a point behind the camera lands on
+the mirrored pixel), omnidl marks it invalid; with ``k > 0`` the valid disk ``r <= 1 / sqrt(k)`` is taken
+0.1 % smaller (Scaramuzza's monotonicity limit); COLMAP's ``CamFromImg`` assumes ``1 + k r^2 > 0`` while
+omnidl unprojects beyond 90 deg when ``k < 0``. The writer stores a Scaramuzza camera of that form
+(``pol = (a0, 0, a2)``, ``d = e = 0``, no ``invpol``) as SIMPLE_DIVISION (``c = 1``) or DIVISION with
+``fx = -a0``, ``fy = c fx``, ``k = -a2 fx``; the ratios read back to floating rounding (<= 1e-9 px).
+
+There is no COLMAP model named ``SPHERICAL`` (checked against ``src/colmap/sensor/models.h`` of COLMAP 4.1.1,
+the newest release, and pycolmap 4.2.1): COLMAP's spherical model ("Add Spherical Camera Model", #4441) is
+``EQUIRECTANGULAR`` (17), the only member of its ``SPHERICAL_CAMERA_MODEL_CASES``; a file naming
+``SPHERICAL`` gets an error saying so.
 
 Pixel convention: COLMAP's is omnidl's (first pixel centre at ``(0.5, 0.5)``): no shift. Writers pick the
 simplest COLMAP model that holds the camera exactly; floats are written with ``repr`` (shortest string
@@ -45,9 +64,10 @@ import struct
 from collections.abc import Mapping
 from pathlib import Path
 
-from ...utils.io import atomic_write_bytes, atomic_write_text
+from ...utils.io import atomic_write_bytes
 from ..base import Camera
-from ._common import UnsupportedModelError, family_of, make, positive_int, select, theta_poly_max_fov, unsupported
+from ._common import (UnsupportedModelError, family_of, make, positive_int, require_max_fov, select, theta_poly_max_fov,
+                      unsupported)
 
 FORMAT = "colmap"
 #: model id -> (name, parameter names)
@@ -73,7 +93,9 @@ MODELS: dict[int, tuple[str, tuple[str, ...]]] = {
     17: ("EQUIRECTANGULAR", ("w", "h")),
 }
 MODEL_IDS = {name: mid for mid, (name, _) in MODELS.items()}
-WRITES = ("pinhole", "opencv", "kannala_brandt", "fov", "fisheye624", "eucm", "equirect")
+WRITES = ("pinhole", "opencv", "kannala_brandt", "fov", "fisheye624", "eucm", "equirect", "scaramuzza")
+#: names that are not COLMAP models but that users expect to be (name -> what COLMAP calls it)
+NOT_MODELS = {"SPHERICAL": "EQUIRECTANGULAR (model id 17, params w, h: the full sphere)"}
 
 
 # -- model mapping -------------------------------------------------------------------------------------
@@ -91,6 +113,9 @@ def _fisheye624(where: str, width: int, height: int, p: dict[str, float]) -> Cam
 
 def to_camera(model: str, width: int, height: int, params: list[float], where: str = "COLMAP camera") -> Camera:
     """The omnidl camera of a COLMAP ``model`` name with ``params`` (in COLMAP's order)."""
+    if model in NOT_MODELS:
+        raise UnsupportedModelError(f"{where}: COLMAP has no camera model {model!r} (COLMAP 4.1.1 models.h); its "
+                                    f"spherical model is {NOT_MODELS[model]}")
     if model not in MODEL_IDS:
         raise ValueError(f"{where}: unknown COLMAP camera model {model!r}; known: {sorted(MODEL_IDS)}")
     names = MODELS[MODEL_IDS[model]][1]
@@ -129,6 +154,8 @@ def to_camera(model: str, width: int, height: int, params: list[float], where: s
             "prism terms to the undistorted angle, Fisheye624 to the distorted one")
     if model == "RAD_TAN_THIN_PRISM_FISHEYE":
         return _fisheye624(where, width, height, p)
+    if model in ("SIMPLE_DIVISION", "DIVISION"):
+        return _division(where, width, height, p)
     if model == "FOV":
         return make("fov", where, **size, **p)
     if model == "EUCM":
@@ -139,6 +166,34 @@ def to_camera(model: str, width: int, height: int, params: list[float], where: s
                                         f"differing from the image size {width}x{height} is not supported")
         return make("equirect", where, **size)
     raise UnsupportedModelError(f"{where}: COLMAP model {model} has no omnidl camera family")
+
+
+def _division(where: str, width: int, height: int, p: dict[str, float]) -> Camera:
+    """COLMAP's (SIMPLE_)DIVISION as the Scaramuzza camera with the same rays (see the module doc)."""
+    if not p["fx"] > 0 or not p["fy"] > 0:
+        raise ValueError(f"{where}: division model focal lengths must be > 0, got fx={p['fx']}, fy={p['fy']}")
+    return make("scaramuzza", where, width=width, height=height, pol=(-p["fx"], 0.0, -p["k"] / p["fx"]), invpol=(),
+                cx=p["cx"], cy=p["cy"], c=p["fy"] / p["fx"], d=0.0, e=0.0)
+
+
+def _division_params(c: Camera) -> tuple[str, list[float]]:
+    """``(model, params)`` of a Scaramuzza camera of the division form, else :class:`UnsupportedModelError`."""
+    pol = tuple(c.pol) + (0.0,) * (3 - len(c.pol))
+    why = []
+    if len(c.pol) > 3 or pol[1] != 0:
+        why.append(f"pol = {list(c.pol)} is not (a0, 0, a2)")
+    if c.d != 0 or c.e != 0:
+        why.append(f"the affine terms d = {c.d}, e = {c.e} are not 0")
+    if c.invpol:
+        why.append("it has an invpol (COLMAP stores none)")
+    if why:
+        raise unsupported(FORMAT, c, WRITES, "COLMAP holds a scaramuzza camera only as a division model (pol = (a0, 0, "
+                          "a2), d = e = 0, no invpol); " + "; ".join(why))
+    fx = -pol[0]
+    k = -pol[2] * fx
+    if c.c == 1:
+        return "SIMPLE_DIVISION", [fx, c.cx, c.cy, k]
+    return "DIVISION", [fx, c.c * fx, c.cx, c.cy, k]
 
 
 def from_camera(camera: Camera) -> tuple[str, list[float]]:
@@ -159,16 +214,21 @@ def from_camera(camera: Camera) -> tuple[str, list[float]]:
     if fam == "kannala_brandt":
         if c.k0 != 1:
             raise unsupported(FORMAT, c, WRITES, f"COLMAP's fisheye models have k0 = 1, got k0 = {c.k0}")
+        require_max_fov(c, {1: 1.0, 3: c.k1, 5: c.k2, 7: c.k3, 9: c.k4}, FORMAT, WRITES, "COLMAP's fisheye models")
         if c.fx == c.fy and c.k3 == 0 and c.k4 == 0:
             return ("SIMPLE_RADIAL_FISHEYE", [c.fx, c.cx, c.cy, c.k1]) if c.k2 == 0 else \
                 ("RADIAL_FISHEYE", [c.fx, c.cx, c.cy, c.k1, c.k2])
         return "OPENCV_FISHEYE", [c.fx, c.fy, c.cx, c.cy, c.k1, c.k2, c.k3, c.k4]
     if fam == "fisheye624":
+        require_max_fov(c, {1: 1.0, **{2 * i + 3: getattr(c, f"k{i}") for i in range(6)}}, FORMAT, WRITES,
+                        "RAD_TAN_THIN_PRISM_FISHEYE")
         return "RAD_TAN_THIN_PRISM_FISHEYE", [getattr(c, n) for n in MODELS[11][1]]
     if fam == "fov":
         return "FOV", [c.fx, c.fy, c.cx, c.cy, c.omega]
     if fam == "eucm":
         return "EUCM", [c.fx, c.fy, c.cx, c.cy, c.alpha, c.beta]
+    if fam == "scaramuzza":
+        return _division_params(c)
     if fam == "equirect":
         if (c.lon_min, c.lon_max, c.lat_min, c.lat_max) != (-math.pi, math.pi, -math.pi / 2, math.pi / 2):
             raise unsupported(FORMAT, c, WRITES, "COLMAP's EQUIRECTANGULAR is the full sphere only")
@@ -247,21 +307,26 @@ def _entries(cameras: Camera | Mapping[int, Camera]) -> list[tuple[int, str, int
     return out
 
 
-def write(cameras: Camera | Mapping[int, Camera], path: str | Path) -> None:
-    """Write one camera (id 1) or ``{camera_id: Camera}`` as ``cameras.txt`` (``.bin`` suffix: binary)."""
+def dumps(cameras: Camera | Mapping[int, Camera], path: str | Path) -> bytes:
+    """The bytes :func:`write` writes (``path`` only picks the layout by its suffix)."""
     path = Path(path)
     rows = _entries(cameras)
     if path.suffix.lower() == ".bin":
         blob = [struct.pack("<Q", len(rows))]
         for cid, model, w, h, params in rows:
             blob.append(struct.pack(f"<iiQQ{len(params)}d", cid, MODEL_IDS[model], w, h, *params))
-        atomic_write_bytes(path, b"".join(blob))
-        return
+        return b"".join(blob)
     lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
              f"# Number of cameras: {len(rows)}"]
     lines += [" ".join([str(cid), model, str(w), str(h)] + [repr(v) for v in params])
               for cid, model, w, h, params in rows]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    return ("\n".join(lines) + "\n").encode()
+
+
+def write(cameras: Camera | Mapping[int, Camera], path: str | Path) -> None:
+    """Write one camera (id 1) or ``{camera_id: Camera}`` as ``cameras.txt`` (``.bin`` suffix: binary)."""
+    atomic_write_bytes(path, dumps(cameras, path))
+
 
 
 def looks_like(text: str) -> bool:
@@ -270,5 +335,5 @@ def looks_like(text: str) -> bool:
         s = line.strip()
         if s and not s.startswith("#"):
             tok = s.split()
-            return len(tok) >= 4 and tok[0].lstrip("-").isdigit() and tok[1] in MODEL_IDS
+            return len(tok) >= 4 and tok[0].lstrip("-").isdigit() and (tok[1] in MODEL_IDS or tok[1] in NOT_MODELS)
     return "CAMERA_ID, MODEL, WIDTH, HEIGHT" in text

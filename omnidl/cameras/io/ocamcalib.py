@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ...utils.io import atomic_write_text
+from ...utils.io import atomic_write_bytes
 from ..base import Camera
 from ._common import family_of, make, unsupported
 
@@ -25,8 +25,8 @@ def read(path: str | Path, one_based: bool | None = None) -> Camera:
     return make("scaramuzza", f"OCamCalib file {str(path)!r}", **read_ocamcalib(path, **kwargs))
 
 
-def write(camera: Camera, path: str | Path) -> None:
-    """Write a ``scaramuzza`` camera as ``calib_results.txt`` (0-based centre, stated in its comment)."""
+def dumps(camera: Camera, path: str | Path) -> bytes:
+    """The bytes :func:`write` writes (``path`` only picks the layout by its suffix)."""
     if family_of(camera) != "scaramuzza":
         raise unsupported(FORMAT, camera, ("scaramuzza",))
     c = camera
@@ -41,7 +41,13 @@ def write(camera: Camera, path: str | Path) -> None:
              f"{float(c.cy) - 0.5!r} {float(c.cx) - 0.5!r}", "",
              '#affine parameters "c", "d", "e"', "", f"{float(c.c)!r} {float(c.d)!r} {float(c.e)!r}", "",
              '#image size: "height" and "width"', "", f"{int(c.height)} {int(c.width)}"]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    return ("\n".join(lines) + "\n").encode()
+
+
+def write(camera: Camera, path: str | Path) -> None:
+    """Write a ``scaramuzza`` camera as ``calib_results.txt`` (0-based centre, stated in its comment)."""
+    atomic_write_bytes(path, dumps(camera, path))
+
 
 
 def looks_like(text: str) -> bool:

@@ -4,14 +4,18 @@ Fields, as the OpenCV sample apps write them (``samples/cpp/calibration.cpp``, t
 tutorial, ``opencv_contrib/modules/ccalib/samples/omni_calibration.cpp``):
 
 * intrinsic matrix ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]``: ``camera_matrix`` (also read:
+  ``Camera_Matrix`` as the calibration tutorial's sample output ``out_camera_data.yml`` has it,
   ``cameraMatrix``, ``K``, ``intrinsic_matrix``, ``intrinsics``, ``M``);
-* distortion: ``distortion_coefficients`` (also ``distCoeffs``, ``dist_coeffs``, ``D``, ``distortion``);
-* ``xi`` (``cv2.omnidir``), ``fisheye_model`` (tutorial; non-zero: ``cv2.fisheye``), optional
-  ``calibration_model`` (``omnidir``/``fisheye``/``pinhole``);
-* image size: ``image_width``/``image_height`` (also ``image_size``/``imageSize`` ``[w, h]``).
+* distortion: ``distortion_coefficients`` (also ``Distortion_Coefficients`` (tutorial), ``distCoeffs``,
+  ``dist_coeffs``, ``D``, ``distortion``);
+* ``xi`` (``cv2.omnidir``), ``fisheye_model`` (the tutorial's flag: ``1`` is ``cv2.fisheye``, ``0`` is
+  ``calibrateCamera``), optional ``calibration_model`` (``omnidir``/``fisheye``/``pinhole``);
+* image size: ``image_width``/``image_height`` (also the tutorial's ``image_Width``/``image_Height``, and
+  ``image_size``/``imageSize`` ``[w, h]``).
 
-Model: ``xi`` present -> ``unified`` (``D = k1, k2, p1, p2``, skew ``s``); ``fisheye_model`` true, or 4
-coefficients stored as ``D`` without ``xi`` (``cv2.fisheye``'s name) -> ``kannala_brandt`` with ``k0 = 1``;
+Model: ``xi`` present -> ``unified`` (``D = k1, k2, p1, p2``, skew ``s``); ``fisheye_model`` non-zero, or 4
+coefficients stored as ``D`` without ``xi`` or ``fisheye_model`` (``cv2.fisheye``'s name) ->
+``kannala_brandt`` with ``k0 = 1``;
 otherwise ``calibrateCamera``'s ``k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tau_x, tau_y]]]]`` ->
 ``pinhole`` (all zero) or ``opencv`` (tilt ``tau`` must be 0). ``model=`` overrides the guess.
 
@@ -27,13 +31,16 @@ from typing import Any
 
 import numpy as np
 
-from ...utils.io import atomic_write_text
+from ...utils.io import atomic_write_bytes
 from ..base import Camera
-from ._common import OPENCV_SHIFT, family_of, make, positive_int, theta_poly_max_fov, unsupported
+from ._common import (OPENCV_SHIFT, family_of, make, positive_int, require_max_fov, safe_yaml, theta_poly_max_fov,
+                      unsupported)
 
 FORMAT = "opencv"
-K_KEYS = ("camera_matrix", "cameraMatrix", "K", "intrinsic_matrix", "intrinsics", "M")
-D_KEYS = ("distortion_coefficients", "distCoeffs", "dist_coeffs", "D", "distortion")
+K_KEYS = ("camera_matrix", "Camera_Matrix", "cameraMatrix", "K", "intrinsic_matrix", "intrinsics", "M")
+D_KEYS = ("distortion_coefficients", "Distortion_Coefficients", "distCoeffs", "dist_coeffs", "D", "distortion")
+#: (width key, height key) pairs: ``calibrateCamera`` samples, the calibration tutorial's sample output
+SIZE_KEYS = (("image_width", "image_height"), ("image_Width", "image_Height"))
 OPENCV_D = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 WRITES = ("pinhole", "opencv", "kannala_brandt", "unified")
 MODELS = ("pinhole", "fisheye", "omnidir")
@@ -66,14 +73,9 @@ def _matrix(node: Any) -> Any:
 
 
 def parse_yaml(text: str, where: str) -> dict[str, Any]:
-    """A FileStorage YAML (``%YAML:1.0`` header, ``!!opencv-matrix`` tags) or plain YAML -> dict."""
-    import yaml
-    body = re.sub(r"^%YAML[: ]1\.\d\s*$", "", text, count=1, flags=re.M)
-    body = re.sub(r"!!opencv-[a-z-]+|!<tag:yaml\.org,2002:opencv-[a-z-]+>", "", body)
-    try:
-        data = yaml.safe_load(body)
-    except yaml.YAMLError as e:
-        raise ValueError(f"{where}: cannot parse it as YAML ({e})") from None
+    """A FileStorage YAML (``%YAML:1.0`` header, ``!!opencv-matrix`` tags) or plain YAML -> dict (safe loader)."""
+    body = re.sub(r"!!opencv-[a-z-]+|!<tag:yaml\.org,2002:opencv-[a-z-]+>", "", text)
+    data = safe_yaml(body, where)
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected a YAML mapping at the top level, got {type(data).__name__}")
     return {str(k): _matrix(v) for k, v in data.items()}
@@ -125,9 +127,9 @@ def _first(data: dict[str, Any], keys: tuple[str, ...]) -> tuple[str | None, Any
 
 
 def _size(data: dict[str, Any], where: str, image_size: tuple[int, int] | None) -> tuple[int, int]:
-    if "image_width" in data and "image_height" in data:
-        return (positive_int(data["image_width"], where, "image_width"),
-                positive_int(data["image_height"], where, "image_height"))
+    for wk, hk in SIZE_KEYS:
+        if wk in data and hk in data:
+            return positive_int(data[wk], where, wk), positive_int(data[hk], where, hk)
     _, sz = _first(data, ("image_size", "imageSize", "image_resolution", "resolution"))
     if sz is not None:
         wh = np.asarray(sz, dtype=np.float64).ravel()
@@ -136,6 +138,15 @@ def _size(data: dict[str, Any], where: str, image_size: tuple[int, int] | None) 
     if image_size is not None:
         return int(image_size[0]), int(image_size[1])
     raise ValueError(f"{where}: no image size (image_width/image_height or image_size); pass image_size=(W, H)")
+
+
+def _flag(value: Any, where: str) -> bool:
+    """The tutorial's ``fisheye_model`` flag (``0``/``1``; absent: ``False``)."""
+    if value is None:
+        return False
+    if isinstance(value, (bool, int, float)) and float(value) in (0.0, 1.0):
+        return bool(value)
+    raise ValueError(f"{where}: fisheye_model must be 0 or 1 (the calibration tutorial's flag), got {value!r}")
 
 
 def from_nodes(data: dict[str, Any], where: str, image_size: tuple[int, int] | None = None,
@@ -156,7 +167,8 @@ def from_nodes(data: dict[str, Any], where: str, image_size: tuple[int, int] | N
         cm = str(data.get("calibration_model", "")).lower()
         if "xi" in data or cm == "omnidir":
             model = "omnidir"
-        elif cm == "fisheye" or bool(data.get("fisheye_model", 0)) or (dname == "D" and D.size == 4):
+        elif cm == "fisheye" or _flag(data.get("fisheye_model"), where) or (
+                "fisheye_model" not in data and dname == "D" and D.size == 4):
             model = "fisheye"
         else:
             model = "pinhole"
@@ -214,6 +226,7 @@ def to_nodes(camera: Camera) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     elif fam == "kannala_brandt":
         if c.k0 != 1:
             raise unsupported(FORMAT, c, WRITES, f"cv2.fisheye has k0 = 1, got k0 = {c.k0}")
+        require_max_fov(c, {1: 1.0, 3: c.k1, 5: c.k2, 7: c.k3, 9: c.k4}, FORMAT, WRITES, "cv2.fisheye")
         D, extra = np.array([c.k1, c.k2, c.k3, c.k4]), {"fisheye_model": 1}
     else:
         D, extra = np.array([c.k1, c.k2, c.p1, c.p2]), {"calibration_model": "omnidir", "xi": float(c.xi)}
@@ -231,8 +244,8 @@ def _scalar(v: Any) -> str:
     return f'"{v}"' if isinstance(v, str) else str(v)
 
 
-def write(camera: Camera, path: str | Path) -> None:
-    """Write ``camera`` as FileStorage YAML (``.xml`` suffix: XML) that ``cv2.FileStorage`` reads."""
+def dumps(camera: Camera, path: str | Path) -> bytes:
+    """The bytes :func:`write` writes (``path`` only picks the layout by its suffix)."""
     path = Path(path)
     K, D, extra = to_nodes(camera)
     scalars: list[tuple[str, Any]] = [("image_width", int(camera.width)), ("image_height", int(camera.height))]
@@ -253,7 +266,13 @@ def write(camera: Camera, path: str | Path) -> None:
         for k, m in mats:
             out.append(f"{k}: !!opencv-matrix\n   rows: {m.shape[0]}\n   cols: {m.shape[1]}\n   dt: d\n"
                        f"   data: [ {', '.join(_fmt(v) for v in m.ravel())} ]")
-    atomic_write_text(path, "\n".join(out) + "\n")
+    return ("\n".join(out) + "\n").encode()
+
+
+def write(camera: Camera, path: str | Path) -> None:
+    """Write ``camera`` as FileStorage YAML (``.xml`` suffix: XML) that ``cv2.FileStorage`` reads."""
+    atomic_write_bytes(path, dumps(camera, path))
+
 
 
 def looks_like(data: dict[str, Any]) -> bool:

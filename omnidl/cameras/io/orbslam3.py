@@ -16,9 +16,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ...utils.io import atomic_write_text
+from ...utils.io import atomic_write_bytes
 from ..base import Camera
-from ._common import OPENCV_SHIFT, family_of, make, positive_int, require_zero, theta_poly_max_fov, unsupported
+from ._common import (OPENCV_SHIFT, family_of, make, positive_int, require_max_fov, require_zero, theta_poly_max_fov,
+                      unsupported)
 from .opencv_storage import parse
 
 FORMAT = "orbslam3"
@@ -70,14 +71,16 @@ def read(path: str | Path, camera: int | None = None) -> Camera:
     return from_nodes(parse(path), f"ORB-SLAM3 settings {str(path)!r}", camera)
 
 
-def write(camera: Camera, path: str | Path) -> None:
-    """Write ``camera`` as ORB-SLAM3 settings (file version 1.0, ``Camera1.*`` keys; camera part only)."""
+def dumps(camera: Camera, path: str | Path) -> bytes:
+    """The bytes :func:`write` writes (``path`` only picks the layout by its suffix)."""
     fam, c = family_of(camera), camera
     if fam not in WRITES:
         raise unsupported(FORMAT, c, WRITES)
     if fam == "kannala_brandt":
         if c.k0 != 1:
             raise unsupported(FORMAT, c, WRITES, f"KannalaBrandt8 has k0 = 1, got k0 = {c.k0}")
+        require_max_fov(c, {1: 1.0, 3: c.k1, 5: c.k2, 7: c.k3, 9: c.k4}, FORMAT, WRITES,
+                        "omnidl's reader of KannalaBrandt8")
         ctype, dist = "KannalaBrandt8", {f"k{i}": getattr(c, f"k{i}") for i in range(1, 5)}
     elif fam == "opencv":
         require_zero(c, ("k4", "k5", "k6", "s1", "s2", "s3", "s4"), FORMAT, WRITES)
@@ -90,7 +93,13 @@ def write(camera: Camera, path: str | Path) -> None:
     lines = ["%YAML:1.0", "", 'File.version: "1.0"', "", f'Camera.type: "{ctype}"', ""]
     lines += [f"Camera1.{k}: {float(v)!r}" for k, v in vals.items()]
     lines += ["", f"Camera.width: {int(c.width)}", f"Camera.height: {int(c.height)}"]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    return ("\n".join(lines) + "\n").encode()
+
+
+def write(camera: Camera, path: str | Path) -> None:
+    """Write ``camera`` as ORB-SLAM3 settings (file version 1.0, ``Camera1.*`` keys; camera part only)."""
+    atomic_write_bytes(path, dumps(camera, path))
+
 
 
 def looks_like(data: Mapping[str, Any]) -> bool:

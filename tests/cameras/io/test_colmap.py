@@ -33,6 +33,9 @@ CASES = [
                                     -0.0015, 0.002, -0.0003, -0.001, 0.0002], "fisheye624"),
     ("SIMPLE_FISHEYE", [200.0, 320.5, 240.25], "kannala_brandt"),
     ("FISHEYE", [200.0, 205.0, 320.5, 240.25], "kannala_brandt"),
+    ("SIMPLE_DIVISION", [200.0, 320.5, 240.25, -0.1], "scaramuzza"),
+    ("DIVISION", [200.0, 205.0, 320.5, 240.25, -0.1], "scaramuzza"),
+    ("DIVISION", [200.0, 205.0, 320.5, 240.25, 0.02], "scaramuzza"),
     ("EUCM", [200.0, 205.0, 320.5, 240.25, 0.6, 1.1], "eucm"),
     ("EQUIRECTANGULAR", [float(W), float(H)], "equirect"),
 ]
@@ -75,7 +78,8 @@ def test_every_model_agrees_with_pycolmap(tmp_path, model, params, family):
     cam = load(path)
     assert type(cam).name == family
     ref = _pycolmap_camera(model, params)
-    theta_max = math.radians(60 if family in ("pinhole", "opencv") else 85)
+    # (Scaramuzza = division models: omnidl projects up to the image corners' angle, 73 deg here)
+    theta_max = math.radians(60 if family in ("pinhole", "opencv", "scaramuzza") else 85)
     pts = _points(2000, theta_max, 0)
     uv_ref = ref.img_from_cam(pts)
     uv, _ = cam.project(torch.from_numpy(pts))
@@ -101,20 +105,57 @@ def test_thin_prism_fisheye_with_radial_and_prism_terms_is_refused(tmp_path):
         load(path)
 
 
-@pytest.mark.parametrize("model", ["SIMPLE_DIVISION", "DIVISION"])
-def test_models_without_an_omnidl_family_are_refused(tmp_path, model):
+def test_spherical_is_not_a_colmap_model(tmp_path):
+    # COLMAP 4.1.1 (models.h) and pycolmap 4.2.1 have no SPHERICAL model: the spherical one is EQUIRECTANGULAR
+    assert "SPHERICAL" not in pycolmap.CameraModelId.__members__
     path = tmp_path / "cameras.txt"
-    _write_txt(path, [(1, model, [200.0, 320.5, 240.25, -0.1] if model.startswith("SIMPLE") else
-                       [200.0, 205.0, 320.5, 240.25, -0.1])])
-    with pytest.raises(UnsupportedModelError, match=model):
+    _write_txt(path, [(1, "SPHERICAL", [float(W), float(H)])])
+    with pytest.raises(UnsupportedModelError, match=r"no camera model 'SPHERICAL'.*EQUIRECTANGULAR"):
         load(path)
+
+
+#: DIVISION rows: COLMAP's text layout (docs "Output Format", cameras.txt), params "fx, fy, cx, cy, k"
+DIVISION_TXT = """# Camera list with one line of data per camera:
+#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]
+# Number of cameras: 2
+1 SIMPLE_DIVISION 640 480 250.5 320.25 239.75 -0.2
+2 DIVISION 640 480 250.5 251.25 320.25 239.75 -0.2
+"""
+
+
+def test_division_models_read_as_scaramuzza_and_round_trip(tmp_path):
+    from omnidl.cameras import Scaramuzza
+    path = tmp_path / "cameras.txt"
+    path.write_text(DIVISION_TXT)
+    cams = load_all(path)
+    assert all(isinstance(c, Scaramuzza) for c in cams.values())
+    assert cams[1].pol == (-250.5, 0.0, 0.2 / 250.5) and cams[1].c == 1.0
+    assert (cams[1].cx, cams[1].cy) == (320.25, 239.75)
+    assert cams[2].c == 251.25 / 250.5
+    out = save(cams, tmp_path / "out_cameras.txt", format="colmap")
+    rows = [ln.split() for ln in out.read_text().splitlines() if not ln.startswith("#")]
+    assert [r[1] for r in rows] == ["SIMPLE_DIVISION", "DIVISION"]
+    for row, ref in zip(rows, [[250.5, 320.25, 239.75, -0.2], [250.5, 251.25, 320.25, 239.75, -0.2]]):
+        assert np.allclose([float(t) for t in row[4:]], ref, rtol=1e-15, atol=0)
+    back = load_all(out)
+    pts = torch.from_numpy(_points(3000, math.radians(100), 4))
+    for cid in cams:
+        uv0, ok0 = cams[cid].project(pts)
+        uv1, ok1 = back[cid].project(pts)
+        assert torch.equal(ok0, ok1) and (uv0 - uv1)[ok0].abs().max() < 1e-9
+    # a Scaramuzza camera that is not of the division form is refused, naming why
+    from omnidl.cameras import Scaramuzza as S
+    with pytest.raises(UnsupportedModelError, match=r"'colmap'.*division model .*pol = "):
+        save(S.example(), tmp_path / "s.txt", format="colmap")
 
 
 def _canonical_rows():
     """One camera per available model, with parameters the writer keeps in the same COLMAP model."""
     rows, families = [], set(list_cameras())
     for i, (model, params, family) in enumerate(CASES):
-        if family in families and model not in ("THIN_PRISM_FISHEYE", "SIMPLE_FISHEYE", "FISHEYE"):
+        # (division models are held as Scaramuzza ratios: round trips to rounding, tested on their own)
+        if family in families and model not in ("THIN_PRISM_FISHEYE", "SIMPLE_FISHEYE", "FISHEYE", "SIMPLE_DIVISION",
+                                                "DIVISION"):
             rows.append((i + 1, model, params))
     return rows
 

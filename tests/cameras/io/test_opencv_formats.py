@@ -121,7 +121,7 @@ cam1:
   - [0.0, 0.0, 0.0, 1.0]
   camera_model: pinhole
   distortion_coeffs: [0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182]
-  distortion_model: equi
+  distortion_model: equidistant
   intrinsics: [190.97847715128717, 190.9733070521226, 254.93170605935475, 256.8974428996504]
   resolution: [512, 512]
   rostopic: /cam1/image_raw
