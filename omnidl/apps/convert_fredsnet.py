@@ -14,7 +14,11 @@ is not detached (this changes gradients, not the forward pass).
 
 Command line::
 
-    python -m omnidl.apps.convert_fredsnet FreDSNet_weights.pth fredsnet_omnidl.pth
+    python -m omnidl.apps.convert_fredsnet FreDSNet_weights.pth fredsnet_omnidl.pth [--overwrite]
+
+The output never replaces the input and replaces an existing file only with ``--overwrite``
+(:mod:`omnidl.utils.outputs`); it is written atomically and holds only tensors, numbers, strings and
+containers (the official ``args`` as a dict), so it loads with ``torch.load(weights_only=True)``.
 """
 from __future__ import annotations
 
@@ -214,11 +218,15 @@ def load_official_checkpoint(path: str, map_location: str | torch.device = "cpu"
     """Build omnidl's FreDSNet from an official checkpoint file (``{'kargs', 'state_dict', ...}`` or a bare
     state dict) and load the converted weights with ``strict=True``. Returns ``(model, checkpoint_args)``.
 
-    ``weights_only=False`` un-pickles arbitrary objects: only for files you trust.
+    The file is read with ``torch.load(weights_only=True)`` (tensors, numbers, strings, containers and the
+    ``argparse.Namespace`` of the official ``args``: nothing that can run code). ``weights_only=False``
+    (``--unsafe-pickle``) un-pickles arbitrary objects: an explicit opt-out, only for files you trust that hold
+    other Python objects.
     """
     from omnidl.models.fredsnet import FreDSNet
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=weights_only)
+    try:   # argparse.Namespace (the official file's "args") is allowed: unpickling it only sets attributes
+        with torch.serialization.safe_globals([argparse.Namespace]):
+            ckpt = torch.load(path, map_location=map_location, weights_only=weights_only)
     except FileNotFoundError:
         raise FileNotFoundError(f"official FreDSNet checkpoint {path!r} not found (download it yourself from "
                                 "the link in the FreDSNet README)") from None
@@ -245,7 +253,8 @@ def load_official_checkpoint(path: str, map_location: str | torch.device = "cpu"
         model.load_state_dict(converted, strict=True)
     except RuntimeError as exc:
         raise ValueError(f"{path!r}: the converted weights do not fit FreDSNet({kwargs}): {str(exc)[:600]}") from None
-    return model, ckpt.get("args") if "state_dict" in ckpt else None
+    args = ckpt.get("args") if "state_dict" in ckpt else None
+    return model, (vars(args) if isinstance(args, argparse.Namespace) else args)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -257,12 +266,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("official", help="official FreDSNet checkpoint (.pth)")
     ap.add_argument("output", help="where to write {'model_kwargs', 'state_dict'} for omnidl")
     ap.add_argument("--unsafe-pickle", action="store_true", help="torch.load(weights_only=False): trusted files only")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing output file (never the input)")
     a = ap.parse_args(argv)
-    if Path(a.output).resolve() == Path(a.official).resolve():
-        print(f"error: the output {a.output} is the official checkpoint itself; give another path", file=sys.stderr)
-        return 2
+    from omnidl.utils.outputs import OutputIsInputError, guard_outputs
     if Path(a.output).is_dir():
         print(f"error: the output {a.output} is a folder; give a file path (e.g. fredsnet_omnidl.pth)", file=sys.stderr)
+        return 2
+    try:   # the output policy (omnidl.utils.outputs): never the input, an existing file only with --overwrite
+        guard_outputs([a.output], [a.official], overwrite=a.overwrite, option="--overwrite")
+    except OutputIsInputError:
+        print(f"error: the output {a.output} is the official checkpoint itself; give another path", file=sys.stderr)
+        return 2
+    except FileExistsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
         model, args = load_official_checkpoint(a.official, weights_only=not a.unsafe_pickle)

@@ -2,7 +2,7 @@
 
     python -m omnidl.apps.reproject --src pano.png --dst-camera configs/camera/kb_f195.yaml --out f.png \
         [--src-camera cam.yaml] [--size-policy error|pad|crop|scale] [--rotation ROLL,PITCH,YAW]
-        [--mode bilinear|masked|nearest] [--depth] [--invalid VALUE] [--mask-out valid.png]
+        [--mode bilinear|masked|nearest] [--depth] [--invalid VALUE] [--mask-out valid.png] [--overwrite]
 
 * ``--src-camera``/``--dst-camera`` take any spec of :func:`omnidl.cameras.resolve_camera` (a camera
   YAML file, a calibration file, a ``configs/camera`` name); ``--src-camera`` defaults to a full
@@ -17,6 +17,9 @@
 * ``--depth`` says the source is a depth (range) map whose 0 means "no measurement": it is sampled with
   ``--mode masked`` (bilinear over the valid pixels only, so holes never blend into valid ranges) unless
   ``--mode nearest`` is given. ``--invalid VALUE`` does the same for another "no data" value.
+* Outputs follow :mod:`omnidl.utils.outputs`: ``--out``/``--mask-out`` never replace ``--src`` or a camera file
+  (not even with ``--overwrite``), an existing ``--out``/``--mask-out`` is replaced only with ``--overwrite``,
+  and ``--out`` and ``--mask-out`` must be two files; all checked before any work.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ import torch
 from omnidl.cameras import Camera, Equirectangular, resolve_camera
 from omnidl.geometry import euler_to_matrix, reproject
 from omnidl.utils.io import atomic_imwrite
+from omnidl.utils.outputs import guard_outputs
 
 
 class CLIError(Exception):
@@ -67,15 +71,16 @@ def parse_rotation(text: str | None) -> torch.Tensor | None:
 
 
 def read_image(path: str | Path) -> np.ndarray:
-    """``(H, W)`` or ``(H, W, C)`` image as OpenCV reads it (any depth, channels unchanged)."""
-    import cv2
+    """``(H, W)`` or ``(H, W, C)`` image as stored (any depth, channels unchanged, BGR order), upright by its EXIF
+    orientation; a file name of any bytes: the datasets' reading policy (:func:`omnidl.data.validate.read_raw`)."""
+    from omnidl.data.validate import read_raw
     path = Path(path)
     if not path.is_file():
         raise CLIError(f"source image {str(path)!r} does not exist")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise CLIError(f"source image {str(path)!r} cannot be decoded by OpenCV")
-    return img
+    try:
+        return read_raw(path, field="source image")
+    except OSError as e:                  # UnreadableFileError: undecodable, truncated, over OpenCV's pixel limit
+        raise CLIError(str(e)) from e
 
 
 def reproject_array(img: np.ndarray, src_camera: Camera, dst_camera: Camera, rotation: torch.Tensor | None = None,
@@ -111,6 +116,17 @@ def check_output_path(path: str, what: str = "--out") -> None:
                        ".png, .tif, .exr, .jpg, ...")
 
 
+def check_outputs(args: argparse.Namespace) -> None:
+    """The output policy (:func:`omnidl.utils.outputs.guard_outputs`) for ``--out``/``--mask-out`` against
+    ``--src`` and the camera files, as a :class:`CLIError`."""
+    outputs = [args.out] + ([args.mask_out] if args.mask_out else [])
+    inputs = [args.src] + [c for c in (args.src_camera, args.dst_camera) if c and Path(c).is_file()]
+    try:
+        guard_outputs(outputs, inputs, overwrite=args.overwrite, option="--overwrite")
+    except (FileExistsError, ValueError) as e:
+        raise CLIError(str(e)) from None
+
+
 def default_panorama_camera(width: int, height: int, src: str) -> Camera:
     """The full equirectangular camera of a ``width x height`` source, which must be 2:1."""
     if width != 2 * height:
@@ -138,11 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--invalid", type=float, default=None, help="the 'no data' value of the source (implies "
                                                                 "--mode masked unless --mode nearest)")
     ap.add_argument("--mask-out", default=None, help="also write the valid mask (0/255 PNG)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --out/--mask-out (never --src)")
     args = ap.parse_args(argv)
     try:
         check_output_path(args.out)
         if args.mask_out:
             check_output_path(args.mask_out, "--mask-out")
+        check_outputs(args)
         img = read_image(args.src)
         h, w = img.shape[:2]
         src_cam = (load_camera(args.src_camera, w, h, args.size_policy) if args.src_camera

@@ -8,6 +8,11 @@ bar and a contact sheet PNG (RGB | depth | semantics | layout wireframe) of the 
 Running again into the same ``--out`` resumes or extends it (more samples, another ``--start``) only with
 the same settings; other settings, or sample files with no ``synth.json``, are an error instead of a
 silently mixed dataset. ``--overwrite`` deletes the samples this writer made there and starts again.
+
+Output policy (:mod:`omnidl.utils.outputs`): one writer per ``--out`` at a time (``--out/.omnidl.lock``: a second
+process stops with a message naming the first); the camera file given to ``--camera`` is never written over or
+deleted, not even with ``--overwrite``; a ``contact_sheet.png`` in a folder this writer did not make is replaced
+only with ``--overwrite``.
 """
 from __future__ import annotations
 
@@ -24,6 +29,7 @@ from omnidl.cameras import resolve_camera
 from omnidl.synth import SPLITS, render_sample
 from omnidl.synth.export import FORMATS, expected_files, sample_name, write_contact_sheet, write_sample
 from omnidl.utils.io import atomic_write_json
+from omnidl.utils.outputs import RunLock, RunLockedError, guard_outputs, same_file
 
 MANIFEST = "synth.json"
 #: glob of the sample names :func:`omnidl.synth.export.sample_name` gives, per format
@@ -108,11 +114,18 @@ def existing_samples(out: Path) -> list[Path]:
     return sorted(found)
 
 
-def check_out(out: Path, settings: dict, overwrite: bool) -> None:
-    """Refuse to mix datasets: ``out`` must be new, or hold a dataset this writer made with ``settings``."""
+def check_out(out: Path, settings: dict, overwrite: bool, inputs: list[Path] = ()) -> None:
+    """Refuse to mix datasets: ``out`` must be new, or hold a dataset this writer made with ``settings``.
+    ``inputs``: files the run reads (the camera file), never deleted or replaced."""
     manifest = out / MANIFEST
+    try:   # the manifest and the contact sheet: never an input; the sheet of a foreign folder only with --overwrite
+        guard_outputs([manifest], inputs, overwrite=True)
+        sheet_is_ours = manifest.exists()
+        guard_outputs([out / "contact_sheet.png"], inputs, overwrite=overwrite or sheet_is_ours)
+    except (FileExistsError, ValueError) as e:
+        raise SystemExit(f"--out {out}: {e}") from None
     if overwrite:
-        removed = existing_samples(out)
+        removed = [f for f in existing_samples(out) if not any(same_file(f, i) for i in inputs)]
         for f in removed + [manifest, out / "contact_sheet.png"]:
             f.unlink(missing_ok=True)
         if removed:
@@ -158,8 +171,22 @@ def main(argv=None) -> int:
     out = Path(args.out)
     rc = float(getattr(cam, "rc", getattr(getattr(cam, "base", None), "rc", 0.0)) or 0.0)
     settings = settings_of(args, cam, fmt, rc)
-    check_out(out, settings, args.overwrite)
-    out.mkdir(parents=True, exist_ok=True)
+    inputs = [Path(args.camera)] if Path(args.camera).is_file() else []
+    created = not out.exists()
+    try:
+        with RunLock(out, "synth writer"):
+            return _write(args, cam, fmt, rc, out, settings, inputs)
+    except RunLockedError as e:
+        raise SystemExit(str(e)) from None
+    except SystemExit:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()          # a refused run leaves no folder behind
+        raise
+
+
+def _write(args: argparse.Namespace, cam, fmt: str, rc: float, out: Path, settings: dict, inputs: list[Path]) -> int:
+    """:func:`main` once ``out`` is locked."""
+    check_out(out, settings, args.overwrite, inputs)
     if not (out / MANIFEST).exists():  # (an existing one holds these settings: check_out compared them)
         atomic_write_json(out / MANIFEST, {"writer": "python -m omnidl.apps.synth", "settings": settings})
     sheet, skipped = [], 0

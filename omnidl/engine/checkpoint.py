@@ -45,8 +45,24 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             return {"model": obj["state_dict"]}
         if all(isinstance(v, torch.Tensor) for v in obj.values()):
             return {"model": obj}
-        raise RuntimeError(f"checkpoint {path}: no 'model' entry (keys: {sorted(obj)[:10]})")
+        raise RuntimeError(f"checkpoint {path}: no 'model' entry (keys found: {_keys(obj)}); expected a checkpoint of "
+                           "train.py ({'model': state dict, ...}), {'state_dict': state dict} or a bare state dict")
+    if "optimizer" in obj:
+        missing = [k for k in RESUME_LAYOUT if k not in obj]
+        if missing:
+            raise RuntimeError(f"checkpoint {path}: has an 'optimizer' but not the rest of an omnidl resume state "
+                               f"(missing {missing}; keys found: {_keys(obj)}); it is another program's checkpoint. "
+                               "Keep only its weights ({'model': state dict}) to start from them")
     return obj
+
+
+#: what a checkpoint with an optimiser state must also hold to be resumed (:func:`save_checkpoint`'s layout)
+RESUME_LAYOUT = ("model", "scheduler", "step", "epoch", "batch_in_epoch")
+
+
+def _keys(obj: dict) -> list:
+    keys = sorted(map(str, obj))
+    return keys[:12] + ([f"... {len(keys) - 12} more"] if len(keys) > 12 else [])
 
 
 def model_config(ckpt: dict[str, Any], label: str, hint: str, default_name: str | None = None):
@@ -75,6 +91,9 @@ def model_config(ckpt: dict[str, Any], label: str, hint: str, default_name: str 
 def load_model_weights(model: torch.nn.Module, ckpt: dict[str, Any], path: str | Path = "<checkpoint>",
                        strict: bool = True) -> None:
     """Load ``ckpt["model"]`` into ``model`` with an error that lists missing/unexpected keys."""
+    if "model" not in ckpt:
+        raise ValueError(f"checkpoint {path}: no 'model' entry (the network's weights); it holds "
+                       f"{sorted(map(str, ckpt))}. A checkpoint of `python train.py` has 'model', 'config', 'step'")
     sd = ckpt["model"]
     if not isinstance(sd, dict) or not all(isinstance(k, str) for k in sd):
         raise RuntimeError(f"checkpoint {path}: 'model' is a {type(sd).__name__}, expected a state dict "

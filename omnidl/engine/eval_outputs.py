@@ -112,14 +112,16 @@ def append_hook_results(path: Path, names: list[str], results: dict[str, Any]) -
 
 def save_pictures(out_dir: Path, name: str, outputs: dict, batch: dict, i: int, viz,
                   camera_fn: Callable[[int, int], Any], save_image: bool, save_ply: bool,
-                  depth_max: float | None = None) -> None:
+                  depth_max: float | None = None, claim: Callable[[Path], Path] = lambda p: p) -> None:
     """Pictures of sample ``i`` under the output stem ``name``. With ``save_image``: ``images/<name>.png`` (the
     full-resolution titled figure ``input | depth | depth GT | semantics | semantics GT`` with a depth colour bar
     in metres and a class legend, :func:`omnidl.viz.prediction_figure`; models without depth/semantic outputs and
     images under ``MIN_FIGURE_HEIGHT`` rows get the configured visualiser's panel), ``inputs/<name>.jpg`` (the network input), ``predictions/<name>_depth.png``
     (uint16 millimetres) and ``<name>_semantic.png`` (class ids). With ``save_ply``: the predicted depth as a
     coloured point cloud ``pointclouds/<name>.ply`` through ``camera_fn(w, h).unproject``, in the gravity-aligned
-    y-up frame (:mod:`omnidl.viz.ply`; tilted synthetic samples are levelled with their ``rotation``)."""
+    y-up frame (:mod:`omnidl.viz.ply`; tilted synthetic samples are levelled with their ``rotation``).
+    ``claim(path)``: called with every path before it is written (the evaluation's
+    :class:`~omnidl.utils.outputs.OutputClaims`: raises for an input, an older result or a second write)."""
     from omnidl.viz import depth_to_points, prediction_figure, to_uint8_bgr, write_ply
     depth, sem = outputs.get("depth"), outputs.get("semantic")
     depth = depth if isinstance(depth, torch.Tensor) else None
@@ -134,21 +136,21 @@ def save_pictures(out_dir: Path, name: str, outputs: dict, batch: dict, i: int, 
         else:
             pic = viz(slice_sample(outputs, i), slice_sample(batch, i)) if viz is not None else None
         if pic is not None:
-            atomic_imwrite(out_dir / "images" / f"{name}.png", to_uint8_bgr(pic))
-        atomic_imwrite(out_dir / "inputs" / f"{name}.jpg", to_uint8_bgr(image))
+            atomic_imwrite(claim(out_dir / "images" / f"{name}.png"), to_uint8_bgr(pic))
+        atomic_imwrite(claim(out_dir / "inputs" / f"{name}.jpg"), to_uint8_bgr(image))
         if depth is not None:
             mm = (depth[i, 0].float().cpu().clamp(0, 65.535) * 1000).round().numpy().astype(np.uint16)
-            atomic_imwrite(out_dir / "predictions" / f"{name}_depth.png", mm)
+            atomic_imwrite(claim(out_dir / "predictions" / f"{name}_depth.png"), mm)
         if sem is not None:
             lab = sem[i].argmax(0).cpu().numpy().astype(np.uint8)
-            atomic_imwrite(out_dir / "predictions" / f"{name}_semantic.png", lab)
+            atomic_imwrite(claim(out_dir / "predictions" / f"{name}_semantic.png"), lab)
     if save_ply and depth is not None:
         d = depth[i].float().cpu()
         rot = batch.get("rotation")
         R = rot[i].double().cpu() if isinstance(rot, torch.Tensor) and rot.shape[-2:] == (3, 3) else None
         pts, cols = depth_to_points(d, camera_fn(d.shape[-1], d.shape[-2]), batch["image"][i].float().cpu(),
                                     frame="gravity_y_up", R_up_cam=R)
-        write_ply(out_dir / "pointclouds" / f"{name}.ply", pts, cols, frame="gravity_y_up")
+        write_ply(claim(out_dir / "pointclouds" / f"{name}.ply"), pts, cols, frame="gravity_y_up")
 
 
 #: metrics in metres (one panel); the others are fractions or unitless ratios (another panel)

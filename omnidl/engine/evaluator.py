@@ -38,13 +38,16 @@ from torch.utils.data import DataLoader
 from omnidl.data.collate import collate_samples
 from omnidl.data.robust import SkipCorrupt
 from omnidl.utils.io import atomic_write_csv, atomic_write_json
+from omnidl.utils.outputs import OutputClaims, RunLock, is_within
 
 from .build import build_camera, build_dataset, build_metrics, build_model, build_viz, output_dir, pick_device
 from .checkpoint import load_checkpoint, load_model_weights
+from .config import check_finite_config
 from .eval_outputs import (OutputNames, append_hook_results, printable, sample_name, sample_source, save_pictures,
                            scalars, slice_sample, write_rotation)
 from .forward import forward, to_device
 from .hooks import ConfiguredHooks
+from .run_dir import check_evaluation_dir, evaluation_dir, overwrite_of
 from .seed import seed_everything
 
 log = logging.getLogger("omnidl.engine")
@@ -58,15 +61,23 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     "rotation": {angle: {...}} (when asked), "output_dir", "wall_time_s"}``.
     """
     t0 = time.time()
+    check_finite_config(cfg)
+    out_dir = evaluation_dir(cfg, output_dir(cfg))  # a training run's folder (even a running one): eval_<ckpt>_<split>/
+    with RunLock(out_dir, "evaluation"):
+        check_evaluation_dir(cfg, out_dir)          # (under the lock: a concurrent evaluation has finished or failed)
+        return _evaluate(cfg, out_dir, t0)
+
+
+def _evaluate(cfg: DictConfig, out_dir: Path, t0: float) -> dict[str, Any]:
+    """:func:`evaluate` once its folder is chosen and locked."""
     ec, tc = cfg.eval, cfg.trainer
-    out_dir = Path(output_dir(cfg))
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "postprocess.jsonl").unlink(missing_ok=True)  # appended per batch below
+    (out_dir / "postprocess.jsonl").unlink(missing_ok=True)  # appended per batch below (old: trainer.overwrite)
     seed_everything(int(tc.seed), tc.num_threads, False)  # trainer.num_threads: auto | 0 | N, as in training
     device = pick_device(str(tc.device))
     cfg, model, ckpt_path = _model_from_checkpoint(cfg, device)
     run = _Evaluation(cfg, out_dir, device, model, _loader(cfg), build_metrics(cfg), build_viz(cfg),
-                      ConfiguredHooks.from_config(cfg))
+                      ConfiguredHooks.from_config(cfg), claims=_claims(cfg, out_dir, ckpt_path))
     angles = [float(a) for a in ec.rotation_deg] or [None]
     if 0.0 not in angles and angles != [None]:
         angles = [None] + angles  # pictures/per-image records always come from the unrotated images
@@ -109,15 +120,24 @@ class _Evaluation:
     records: list[dict[str, Any]] = field(default_factory=list)
     cameras: dict[tuple[int, int], Any] = field(default_factory=dict)
     stems: OutputNames = field(default_factory=OutputNames)
+    claims: OutputClaims = field(default_factory=OutputClaims)   # no picture replaces an input or older result
 
     def __post_init__(self):
         self.has_labels = self.metrics is not None
         self.per_image_metrics = copy.deepcopy(self.metrics) if self.metrics is not None else None
 
     def camera(self, w: int, h: int):
-        """The configured camera at a ``w x h`` output size (cached)."""
+        """The configured camera at a ``w x h`` output size (cached). A size that is not the calibrated image
+        uniformly resized (nor covered by a ``size_policy`` the camera config states) is a ``ValueError``
+        naming both sizes: point clouds are never made through a stretched camera."""
         if (w, h) not in self.cameras:
-            self.cameras[(w, h)] = build_camera(self.cfg, w, h)
+            from omnidl.cameras import check_image_size
+            cam = build_camera(self.cfg, w, h)
+            base = getattr(cam, "base", None)
+            node = self.cfg.get("camera")
+            if base is not None and not (node.get("size_policy") if hasattr(node, "get") else None):
+                check_image_size((h, w), base, "evaluated output")
+            self.cameras[(w, h)] = cam
         return self.cameras[(w, h)]
 
     def one_pass(self, angle: float | None, base: bool) -> dict[str, float]:
@@ -177,7 +197,7 @@ class _Evaluation:
             save_ply = n_ply < 0 or idx < n_ply
             if save_img or save_ply:
                 save_pictures(self.out_dir, stems[i], outputs, batch, i, self.viz, self.camera, save_img, save_ply,
-                              ec.depth_max)
+                              ec.depth_max, claim=self.claims.claim)
 
 
 def _model_from_checkpoint(cfg: DictConfig, device: torch.device) -> tuple[DictConfig, torch.nn.Module, str | None]:
@@ -196,6 +216,17 @@ def _model_from_checkpoint(cfg: DictConfig, device: torch.device) -> tuple[DictC
         model = build_model(cfg).to(device).eval()
         log.warning("no checkpoint given (checkpoint=PATH): evaluating the randomly initialised model")
     return cfg, model, ckpt_path
+
+
+def _claims(cfg: DictConfig, out_dir: Path, ckpt_path: str | None) -> OutputClaims:
+    """The per-file output check of the pictures: never the checkpoint or a file already in the data folder
+    (``data.root``), never an existing file without ``trainer.overwrite=true``."""
+    data = cfg.get("data") or {}
+    root = data.get("root") if hasattr(data, "get") else None
+    if root and out_dir != Path(root) and is_within(out_dir, root):
+        root = None   # an evaluation folder inside the data folder: the files in it are its own, not data
+    inputs = [p for p in (ckpt_path, root) if p]
+    return OutputClaims(inputs, overwrite_of(cfg), option="trainer.overwrite=true")
 
 
 def _loader(cfg: DictConfig) -> DataLoader:

@@ -127,14 +127,15 @@ def resume_command(cfg: DictConfig, out_dir: Path) -> str:
     ``hydra.run.dir=<out_dir> trainer.resume=true`` (without ``checkpoint=``, which would win over last.pt)."""
     ov = _hydra_overrides()
     script = Path(sys.argv[0]).name if sys.argv and sys.argv[0].endswith(".py") else "train.py"
+    program = "omnidl train" if sys.argv and sys.argv[0] == "omnidl train" else f"python {script}"
     try:
         shown = Path(out_dir).resolve().relative_to(Path.cwd())
     except ValueError:
         shown = Path(out_dir)
     if ov is None:
-        return f"python {script} <the same overrides> paths.output_dir={shlex.quote(str(out_dir))} trainer.resume=true"
+        return f"{program} <the same overrides> paths.output_dir={shlex.quote(str(out_dir))} trainer.resume=true"
     keep = [o for o in ov[0] if not any(o.lstrip("+~").startswith(k + "=") for k in ("trainer.resume", "checkpoint"))]
     if not _sets(ov[0], "paths.output_dir"):
         keep.append(f"hydra.run.dir={shown}")
     keep.append("trainer.resume=true")
-    return " ".join(["python", script, *(shlex.quote(o) for o in keep)])
+    return " ".join([program, *(shlex.quote(o) for o in keep)])

@@ -26,7 +26,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import distributed as ddp
-from omnidl.utils.io import remove_stale_temps
+from omnidl.utils.io import remove_stale_temps, temp_tag
 
 from .checkpoint import load_checkpoint, load_model_weights, save_checkpoint
 from .seed import rng_state, set_rng_state
@@ -97,7 +97,8 @@ class Checkpointer:
         self.opt = opt
         self.dist = dist
         self.save_optimizer = save_optimizer
-        if dist.is_main:  # temp files a kill -9 left behind (atomic writes never leave a half file as last/best)
+        if dist.is_main:  # temp files a kill -9 left behind (atomic writes never leave a half file as last/best);
+            # only those of dead processes on this host (temp names carry pid@host), never a live writer's
             for p in remove_stale_temps(self.dir, ["last.pt", "best.pt"]):
                 log.info("removed %s, left by an interrupted checkpoint write", p)
             for p in remove_stale_temps(self.dir.parent, ["metrics.json", "train_log.jsonl"]):
@@ -155,7 +156,7 @@ class Checkpointer:
         if not self.dist.is_main:
             return
         if state.best_step == state.step and self.best.is_file():
-            tmp = self.dir / f".last.pt.link-{os.getpid()}.tmp"    # .<name>.<tag>.tmp: remove_stale_temps finds it
+            tmp = self.dir / f".last.pt.{temp_tag()}.link.tmp"   # remove_stale_temps finds it (if this process dies)
             try:
                 if self.last.is_file() and os.path.samefile(self.best, self.last):
                     return                               # already one file (a resumed finished run)

@@ -21,6 +21,11 @@ What one run does (all side effects on rank 0 only):
   (:mod:`.log`);
 * writes ``metrics.json`` and returns the same dict.
 
+Output policy (:mod:`.run_dir`, :mod:`omnidl.utils.outputs`): the run folder is locked for the whole run
+(``.omnidl.lock``: pid and host; a second process on the same folder stops with a message naming the first);
+a folder with a previous run's checkpoints/metrics is refused unless ``trainer.resume=true`` continues that run
+or ``trainer.overwrite=true`` replaces it; ``trainer.resume=true`` without ``last.pt`` in a used folder stops.
+
 Resume (``trainer.resume=true`` or ``checkpoint=PATH``) restores model, optimiser, scheduler, AMP scaler,
 every RNG and the sampler position, so the loss curve continues exactly as if never interrupted; other
 optimisation/data settings than the checkpoint's are an error unless ``trainer.resume_override=true``
@@ -43,17 +48,19 @@ from torch.utils.data import DataLoader
 from omnidl.data.collate import collate_samples
 from omnidl.data.robust import SkipCorrupt
 from omnidl.utils.io import atomic_write_json
+from omnidl.utils.outputs import RunLock
 
 from . import distributed as ddp
 from .build import build_dataset, build_loss, build_metrics, build_model, build_viz, output_dir, pick_device
 from .checkpoint import load_checkpoint
 from .compile import CompileTimer, compile_for_training
-from .config import check_trainer_config, missing_search_result
+from .config import check_finite_config, check_trainer_config, missing_search_result
 from .hooks import ConfiguredHooks
 from .interrupt import StopRequest, TrainingInterrupted
 from .log import TrainLogger
 from .optim import build_optimizer, build_scheduler
 from .resume import apply_new_settings, check_resume_dir, check_resume_settings, resume_command
+from .run_dir import check_output_options, check_train_dir
 from .sampler import ResumableDistributedSampler
 from .seed import seed_everything
 from .state import Checkpointer, TrainState, is_better
@@ -71,7 +78,26 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     t0 = time.time()
     tc = cfg.trainer
     check_trainer_config(tc, cfg.optim)
+    check_finite_config(cfg)
+    check_output_options(tc)
     out_dir = Path(output_dir(cfg))
+    # one process per run folder (rank 0 holds the lock for all ranks; taken before DDP starts, so a refused
+    # start never leaves the other ranks waiting), then the folder rules of .run_dir
+    lock = RunLock(out_dir, "training run") if int(os.environ.get("RANK", "0")) == 0 else None
+    if lock is not None:
+        lock.acquire()
+    try:
+        if lock is not None:
+            check_train_dir(cfg, out_dir, out_dir / "checkpoints" / "last.pt")
+        return _train(cfg, out_dir, t0)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _train(cfg: DictConfig, out_dir: Path, t0: float) -> dict[str, Any]:
+    """:func:`train` once the run folder is locked and checked."""
+    tc = cfg.trainer
     seed_everything(int(tc.seed), tc.num_threads, bool(tc.deterministic))
     device = pick_device(str(tc.device), int(os.environ.get("LOCAL_RANK", 0)))
     dist = ddp.setup(device, str(tc.distributed_backend))

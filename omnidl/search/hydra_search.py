@@ -15,6 +15,12 @@ Each trial folder (``trial_NNN``) keeps its ``metrics.json`` and logs; ``search.
 weights stay (default ``best_trial``: a weights-only ``best.pt`` of the best trial; see
 :mod:`omnidl.search.trial_files`). Resuming with another objective, parameter range, fixed value or per-trial
 override is an error (``search.resume_override=true`` resumes anyway; ``search.restart=true`` starts over).
+
+Output policy (:mod:`omnidl.utils.outputs`): the search folder is locked while the search runs (a second search
+in it stops with a message naming the first); a trial folder is cleared before its trial trains (it can only
+hold an interrupted attempt of that trial, or a trial of the search that ``search.restart=true`` replaces);
+``configs/loss/<name>_best.yaml`` is written only when new or written by a search before (checked before the
+first trial), never over a hand-written loss config.
 """
 from __future__ import annotations
 
@@ -28,7 +34,9 @@ from typing import Any, Callable
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from omnidl.engine.run_dir import clear_train_results
 from omnidl.utils.io import atomic_write, atomic_write_text
+from omnidl.utils.outputs import OutputExistsError, RunLock, RunLockedError
 
 from .driver import SearchResult, TrialRecord, run_search
 from .space import SearchConfigError, SearchSpec, parse_search_spec
@@ -149,6 +157,9 @@ def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dic
     def evaluate(params: dict, idx: int) -> dict:
         trial_cfg = build(params, idx)
         log.info("search %s: trial %d with %s", spec.name, idx, params)
+        # a trial folder holding files is left by an interrupted attempt of this trial index or by the search that
+        # search.restart=true replaces: it belongs to this search (whose folder is locked), so it is cleared
+        clear_train_results(trial_dir(search_dir, idx), f"search {spec.name}: trial {idx} starts again")
         try:
             return trial_metrics(train_fn(trial_cfg))
         finally:
@@ -162,21 +173,29 @@ def run_search_from_config(cfg: DictConfig, train_fn: Callable[[DictConfig], dic
             drop_other_bests(search_dir, trial_dir(search_dir, best_so_far["index"]))
         write_reports(spec, None, search_dir, extra=rec)
 
-    result = run_search(spec, evaluate, search_dir / "experiment.json", restart=restart, on_trial_end=on_end,
-                        resume_override=resume_override)
-    if keep == "best_trial":
-        drop_other_bests(search_dir, trial_dir(search_dir, result.best_trial))
-    write_reports(spec, result, search_dir)
     best_dir = Path(cfg.search.get("config_dir") or config_dir())
-    best_cfg = build(result.best_params, result.best_trial)  # the best trial's own config (search overrides included)
-    best_path = write_best_loss_config(spec, result, best_cfg, search_dir, best_dir)
+    check_best_config_path(best_dir / "loss" / f"{spec.name}_best.yaml")  # before any trial, not after the search
+    try:
+        lock = RunLock(search_dir, "search").acquire()
+    except RunLockedError as exc:
+        raise SearchConfigError(str(exc)) from None
+    try:
+        result = run_search(spec, evaluate, search_dir / "experiment.json", restart=restart, on_trial_end=on_end,
+                            resume_override=resume_override)
+        if keep == "best_trial":
+            drop_other_bests(search_dir, trial_dir(search_dir, result.best_trial))
+        write_reports(spec, result, search_dir)
+        best_cfg = build(result.best_params, result.best_trial)  # the best trial's own config (with search overrides)
+        best_path = write_best_loss_config(spec, result, best_cfg, search_dir, best_dir)
+    finally:
+        lock.release()
     print(f"search {spec.name}: best objective {result.best_objective:.5g} at trial {result.best_trial} "
           f"with {result.best_params}\n  best loss config: {best_path}\n  trials: {search_dir / 'trials.md'}")
     return result
 
 
 def config_dir() -> Path:
-    """The primary config folder of the running Hydra app (the repo's ``configs/``)."""
+    """The primary config folder of the running Hydra app (the package's ``omnidl/configs``)."""
     try:
         from hydra.core.hydra_config import HydraConfig
         for src in HydraConfig.get().runtime.config_sources:
@@ -184,7 +203,29 @@ def config_dir() -> Path:
                 return Path(src.path)
     except Exception:
         pass
-    return Path(__file__).resolve().parents[2] / "configs"
+    from omnidl.engine.config import config_root
+    return config_root()
+
+
+#: the first line of every ``<name>_best.yaml`` a search writes (:func:`write_best_loss_config`)
+BEST_HEADER = "# Best loss weights found by the "
+
+
+def check_best_config_path(path: Path) -> None:
+    """``configs/loss/<name>_best.yaml`` may be (re)written only if it is new or was written by a search: a
+    hand-written loss config of that name is never replaced (:class:`~omnidl.utils.outputs.OutputExistsError`)."""
+    if path.is_dir():
+        raise OutputExistsError(f"{path} is a folder; the search writes its best loss config to that file name")
+    if not path.exists():
+        return
+    try:
+        first = path.read_text(encoding="utf-8", errors="replace").splitlines()[:1]
+    except OSError as exc:
+        raise OutputExistsError(f"{path} exists and cannot be read ({exc}); the search would replace it") from exc
+    if not first or not first[0].startswith(BEST_HEADER):
+        raise OutputExistsError(f"{path} exists and was not written by a search (its first line is not "
+                                f"{BEST_HEADER!r}...): it is never replaced. Rename it, or give the search another "
+                                "name or search.config_dir")
 
 
 def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: DictConfig, search_dir: Path,
@@ -199,7 +240,8 @@ def write_best_loss_config(spec: SearchSpec, result: SearchResult, train_cfg: Di
             if key.startswith("loss."):
                 OmegaConf.update(loss, key[len("loss."):], val, force_add=True)
     objective = " ".join(f"{'+' if w >= 0 else '-'} {abs(w):g}*{m}" for m, w in spec.objective_metrics.items())
-    header = (f"# Best loss weights found by the '{spec.name}' search (trial {result.best_trial}, objective "
+    check_best_config_path(configs / "loss" / f"{spec.name}_best.yaml")
+    header = (f"{BEST_HEADER}'{spec.name}' search (trial {result.best_trial}, objective "
               f"{result.best_objective:.6g}). Use: python train.py loss={spec.name}_best\n"
               f"# objective ({'minimised' if spec.minimize else 'maximised'}, metrics as fractions): "
               f"{objective.lstrip('+ ')}\n")

@@ -1,10 +1,11 @@
 """Atomic file writes: every checkpoint and result file goes through these (temp file + rename).
 
-A write goes to ``.<name>.<random>.tmp`` in the target's folder, is flushed and fsynced, gets the permissions
+A write goes to ``.<name>.<pid>@<host>.<random>.tmp`` in the target's folder (the writer's process id and host in
+the name, so a process never mistakes another live writer's temp file for an orphan), is flushed and fsynced, gets the permissions
 a plain ``open()`` would give (``0o666`` minus the process umask; ``mkstemp`` alone gives 0600), and is renamed
 onto the target; the folder is then fsynced (best effort). A failed write removes its temp file and leaves the
 old target untouched; a full disk is an ``OSError`` naming the file and the free space. Temp files orphaned by
-a ``kill -9`` are removed by :func:`remove_stale_temps`.
+a ``kill -9`` are removed by :func:`remove_stale_temps` (only those of dead processes on this host).
 
 Also the two text formats every result file shares: JSON with numpy/torch values (:func:`json_default`)
 and CSV from row dicts (:func:`rows_to_csv`).
@@ -16,7 +17,9 @@ import errno
 import io
 import json
 import os
+import re
 import shutil
+import socket
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -57,6 +60,37 @@ def _disk_full_error(path: Path, exc: BaseException) -> OSError | None:
     return err
 
 
+def this_host() -> str:
+    """This machine's host name, reduced to ``[A-Za-z0-9-]`` (as it appears in temp and lock file names)."""
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname()) or "localhost"
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (a zombie counts as gone)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True   # exists, owned by someone else
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[-1].split()[0] != b"Z"
+    except (OSError, IndexError):
+        return True
+
+
+def temp_tag() -> str:
+    """``<pid>@<host>``: the part of a temp file name that says which process writes it."""
+    return f"{os.getpid()}@{this_host()}"
+
+
+#: ``.<name>.<pid>@<host>.<random>.tmp`` (:func:`atomic_write`); ``.<name>.<random>.tmp`` from older versions
+_TEMP = re.compile(r"^\.(?P<name>.+?)\.(?:(?P<pid>\d+)@(?P<host>[A-Za-z0-9-]+)\.)?(?P<rest>[^.]+)\.tmp$")
+
+
 def _fsync_dir(folder: Path) -> None:
     """fsync a folder so a rename in it survives a power loss (best effort: not every OS/filesystem allows it)."""
     try:
@@ -78,7 +112,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     ``0o666 & ~umask`` permissions. A full disk raises ``OSError`` naming ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{temp_tag()}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         write(tmp)
@@ -96,21 +130,28 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
 
 
 def remove_stale_temps(folder: str | os.PathLike, names: Sequence[str] | None = None) -> list[Path]:
-    """Delete the temp files :func:`atomic_write` leaves when killed (``.<name>.*.tmp``) in ``folder``;
-    only those of ``names`` when given. Returns the removed paths. Call it only where no other process
-    is writing (e.g. a run's own checkpoint folder at start-up)."""
+    """Delete the temp files :func:`atomic_write` leaves when killed (``.<name>.<pid>@<host>.*.tmp``) in
+    ``folder``; only those of ``names`` when given. A temp file of a live process, of this process, or of
+    another host is kept (it may be a write in progress); one without a pid (older omnidl) is removed.
+    Returns the removed paths."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
     removed = []
+    host = this_host()
     for p in folder.glob(".*.tmp"):
-        stem = p.name[1:].rsplit(".", 2)[0]  # .<name>.<random>.tmp -> <name>
-        if p.is_file() and (names is None or stem in names):
-            try:
-                p.unlink()
-                removed.append(p)
-            except FileNotFoundError:
-                pass
+        m = _TEMP.match(p.name)
+        if m is None or (names is not None and m["name"] not in names) or not p.is_file():
+            continue
+        if m["pid"] is not None:
+            pid = int(m["pid"])
+            if m["host"] != host or pid == os.getpid() or pid_alive(pid):
+                continue
+        try:
+            p.unlink()
+            removed.append(p)
+        except FileNotFoundError:
+            pass
     return removed
 
 

@@ -90,3 +90,26 @@ def test_cli_cameras_from_calibration_files_and_config_names(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "kb_f195" in err and "64x32" in err and "1080x960" in err and "size_policy" in err
     assert load_camera("kb_f195", 64, 32, "pad").size == (64, 32)
+
+
+def test_out_equal_to_src_never_replaces_the_source(tmp_path, capsys):
+    """issue 48: `reproject --out` equal to `--src` replaced the source."""
+    write_inputs(tmp_path)
+    src = tmp_path / "pano.png"
+    before = src.read_bytes()
+    for extra in ([], ["--overwrite"]):
+        rc = main(["--src", str(src), "--dst-camera", str(tmp_path / "pin.yaml"), "--out", str(src), *extra])
+        assert rc == 2 and "is the input file" in capsys.readouterr().err
+    assert src.read_bytes() == before
+
+
+def test_an_existing_output_is_replaced_only_with_overwrite(tmp_path, capsys):
+    write_inputs(tmp_path)
+    out = tmp_path / "old.png"
+    out.write_bytes(b"previous result")
+    argv = ["--src", str(tmp_path / "pano.png"), "--dst-camera", str(tmp_path / "pin.yaml"), "--out", str(out)]
+    assert main(argv) == 2 and "already exists" in capsys.readouterr().err and out.read_bytes() == b"previous result"
+    assert main(argv + ["--overwrite"]) == 0 and cv2.imread(str(out)).shape == (16, 20, 3)
+    argv = ["--src", str(tmp_path / "pano.png"), "--dst-camera", str(tmp_path / "pin.yaml"), "--out",
+            str(tmp_path / "n.png"), "--mask-out", str(tmp_path / "N.png")]
+    assert main(argv) == 2 and "two outputs are the same file" in capsys.readouterr().err

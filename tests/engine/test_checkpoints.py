@@ -158,8 +158,8 @@ def test_a_kill_while_last_is_linked_to_best_leaves_no_temp_after_restart(cfg_fa
         train(cfg)
     assert any(p.name.endswith(".tmp") for p in ck_dir.iterdir())
     monkeypatch.undo()
-    train(cfg)                               # the rerun (resume of a finished run) cleans up at start
-    assert sorted(p.name for p in ck_dir.iterdir()) == ["best.pt", "last.pt"]
+    train(cfg_factory(["trainer.max_steps=1", "trainer.tensorboard=false", "trainer.resume=true"], sub="t"))
+    assert sorted(p.name for p in ck_dir.iterdir()) == ["best.pt", "last.pt"]  # the resume cleaned up at start
 
 
 def test_finishing_again_when_last_is_already_the_best_link_leaves_no_temp(cfg_factory):

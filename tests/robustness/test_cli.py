@@ -92,6 +92,20 @@ def _a_file(out):
     out.write_text("not a folder")
 
 
+def _foreign_sheet(out):
+    out.mkdir(parents=True)
+    (out / "contact_sheet.png").write_bytes(b"a user's picture")
+
+
+def _locked(out):
+    import json as _json
+    import os as _os
+
+    from omnidl.utils.io import this_host
+    out.mkdir(parents=True)
+    (out / ".omnidl.lock").write_text(_json.dumps({"pid": _os.getppid(), "host": this_host(), "what": "synth writer"}))
+
+
 SYNTH_ROWS = [
     row("1b1-rerun-other-size-and-seed", _first_run, lambda o: _synth(o, n=2, size=(64, 32), seed=5),
         verdict=ERROR, match=r"other settings \(width: 32 there, 64 now.*seed: 0 there, 5 now"),
@@ -135,6 +149,10 @@ SYNTH_ROWS = [
         match=r"--format: invalid choice: 'bogus'"),
     row("random-rotation-for-upright-format", None, lambda o: _synth(o, "--rotation", "random"), verdict=ERROR,
         match=r"--format horizonnet needs --rotation upright"),
+    row("foreign-contact-sheet", _foreign_sheet, lambda o: _synth(o).__add__(["--contact-sheet", 1]), verdict=ERROR,
+        match=r"contact_sheet\.png already exists.*--overwrite"),
+    row("folder-locked-by-another-writer", _locked, lambda o: _synth(o), verdict=ERROR,
+        match=r"is in use by another synth writer: pid \d+ on host"),
 ]
 
 
@@ -427,7 +445,22 @@ CONVERT_ROWS = [
     row("output-is-the-input", lambda t: [_official(t, "empty"), t / "official.pth"], verdict=ERROR,
         match=r"the output .*official\.pth is the official checkpoint itself"),
     row("output-is-a-folder", lambda t: [_official(t, "empty"), t], verdict=ERROR, match=r"is a folder; give a file"),
+    row("output-is-a-hard-link-of-the-input", lambda t: [_official(t, "empty"), _hardlink(t)], verdict=ERROR,
+        match=r"is the official checkpoint itself"),
+    row("output-exists", lambda t: [_official(t, "empty"), _existing(t)], verdict=ERROR,
+        match=r"previous\.pth already exists.*--overwrite"),
 ]
+
+
+def _hardlink(t):
+    import os as _os
+    _os.link(t / "official.pth", t / "link.pth")
+    return t / "link.pth"
+
+
+def _existing(t):
+    (t / "previous.pth").write_bytes(b"converted before")
+    return t / "previous.pth"
 
 
 @pytest.mark.parametrize("argv, verdict, match", CONVERT_ROWS)
@@ -632,7 +665,7 @@ CKPT_ROWS = [
     row("3-10-zero-byte", "zero-byte", verdict=ERROR, match=r"could not read checkpoint .*c\.pt"),
     row("3-11-text-file", "text", verdict=ERROR, match=r"could not read checkpoint .*c\.pt"),
     row("3-12-pickled-list", "list", verdict=ERROR, match=r"c\.pt.*expected a dict, got list"),
-    row("3-13-dict-without-model", "no-model", verdict=ERROR, match=r"c\.pt: no 'model' entry \(keys: \['foo'\]\)"),
+    row("3-13-dict-without-model", "no-model", verdict=ERROR, match=r"c\.pt: no 'model' entry \(keys found: \['foo'\]\)"),
 ]
 
 

@@ -56,6 +56,9 @@ CONFIG_ROWS = [
     row("unknown-trainer-key", ["trainer.max_stpes=3"], verdict=ERROR, match=r"max_stpes"),
     row("batch_size-not-a-number", ["trainer.batch_size=abc"], verdict=ERROR, match=r"abc"),
     row("lr-zero-is-allowed", ["optim.lr=0"], verdict=OK),
+    row("val_max_batches-0", ["trainer.val_max_batches=0"], verdict=ERROR,
+        match=r"trainer\.val_max_batches=0: expected -1 \(the whole validation set\) or a positive number"),
+    row("val_max_batches-minus2", ["trainer.val_max_batches=-2"], verdict=ERROR, match=r"trainer\.val_max_batches=-2"),
 ]
 
 
@@ -115,6 +118,12 @@ CKPT_ROWS = [
                                                                          p)), verdict=OK),
     row("ddp-module-prefix", _write("ddp.pt", lambda p, t: torch.save(
         {"model": {f"module.{k}": v for k, v in TinyNet(width=8).state_dict().items()}}, p)), verdict=OK),
+    row("other-programs-resume-layout", _write("other.pt", lambda p, t: torch.save(
+        {"model": TinyNet(width=8).state_dict(), "optimizer": {}, "epoch": 3}, p)), verdict=ERROR,
+        match=r"other\.pt: has an 'optimizer' but not .*missing \['scheduler', 'step', 'batch_in_epoch'\].*keys found"),
+    row("config-without-weights-entry", _write("cfgonly.pt", lambda p, t: torch.save(
+        {"config": {"model": {"name": "x"}}, "net": TinyNet(width=8).state_dict()}, p)), verdict=ERROR,
+        match=r"cfgonly\.pt: no 'model' entry \(keys found: \['config', 'net'\]\)"),
 ]
 
 
@@ -267,3 +276,53 @@ def test_repaired_best_is_logged(killed_run, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="omnidl.engine"):
         run()
     assert "best.pt was missing; rewrote it from" in caplog.text
+
+
+# ---------------------------------------------------------------- the run folder (output policy, issue 48)
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("finished") / "run"
+    train(make_cfg(out, QUICK))
+    return out
+
+
+def _no_last(run: Path):
+    (run / "checkpoints" / "last.pt").unlink()
+
+
+def _hashes(run: Path) -> dict:
+    return {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+
+
+FOLDER_ROWS = [
+    row("retrain-into-a-finished-run", [], None, verdict=ERROR,
+        match=r"already holds a training run .*trainer\.resume=true.*trainer\.overwrite=true"),
+    row("retrain-other-seed", ["trainer.seed=4"], None, verdict=ERROR, match=r"already holds a training run"),
+    row("resume-without-last-pt", ["trainer.resume=true"], _no_last, verdict=ERROR,
+        match=r"trainer\.resume=true but .* has no checkpoints/last\.pt.*trainer\.overwrite=true"),
+    row("overwrite", ["@trainer.overwrite=true"], None, verdict=OK),
+    row("resume-without-last-pt-overwrite", ["trainer.resume=true", "@trainer.overwrite=true"], _no_last, verdict=OK),
+    row("resume-a-finished-run", ["trainer.resume=true"], None, verdict=OK),
+]
+
+
+@pytest.mark.parametrize("extra, prepare, verdict, match", FOLDER_ROWS)
+def test_run_folder_rules(finished_run, tmp_path, extra, prepare, verdict, match):
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    if prepare:
+        prepare(run)
+    before = _hashes(run)
+    cfg = make_cfg(run, QUICK + [e for e in extra if not e.startswith("@")])
+    for e in extra:
+        if e.startswith("@"):
+            key, value = e[1:].split("=", 1)
+            node, leaf = key.rsplit(".", 1)
+            with open_dict(OmegaConf.select(cfg, node)):
+                OmegaConf.update(cfg, key, yaml.safe_load(value), force_add=True)
+    out = expect(lambda: train(cfg), verdict, match)
+    if verdict == ERROR:
+        assert _hashes(run) == before           # a refused run changes nothing
+    else:
+        assert out["step"] == 2 and (run / "checkpoints" / "last.pt").is_file()

@@ -41,3 +41,22 @@ def test_unknown_parameter_fails_before_training(tmp_path):
     with pytest.raises(SearchConfigError, match="loss.alpha_typo"):
         run_search_from_config(cfg, train_fn=lambda c: calls.append(c))
     assert not calls
+
+
+def test_a_hand_written_best_config_is_never_replaced_and_is_checked_before_any_trial(tmp_path):
+    mine = tmp_path / "configs" / "loss" / "toy_best.yaml"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("alpha_a: 3.0  # tuned by hand\n")
+    calls = []
+    with pytest.raises(FileExistsError, match=r"toy_best\.yaml exists and was not written by a search"):
+        run_search_from_config(_cfg(tmp_path), train_fn=lambda c: calls.append(c))
+    assert not calls and mine.read_text() == "alpha_a: 3.0  # tuned by hand\n"
+
+
+def test_a_second_search_in_the_same_folder_stops(tmp_path):
+    from omnidl.utils.outputs import RunLock
+    calls = []
+    with RunLock(tmp_path / "s", "search"):
+        with pytest.raises(SearchConfigError, match=r"is in use by another search: pid \d+"):
+            run_search_from_config(_cfg(tmp_path), train_fn=lambda c: calls.append(c))
+    assert not calls
