@@ -1,23 +1,12 @@
 """Evaluate a checkpoint: ``python evaluate.py model=fredsnet checkpoint=PATH [data=folder data.root=DIR]``
 (see docs/engine.md).
 
-Writes metrics, per-image records, pictures and point clouds (:mod:`omnidl.engine.evaluator`), then the
-static page ``report.html`` over them (:mod:`omnidl.apps.html_report`)."""
-import hydra
-from omegaconf import DictConfig
+A thin wrapper of ``omnidl evaluate`` (:mod:`omnidl.apps.evaluate`), kept for the README's commands: writes
+metrics, per-image records, pictures and point clouds (:mod:`omnidl.engine.evaluator`), then the static page
+``report.html`` over them (:mod:`omnidl.apps.html_report`)."""
+import sys
 
-from omnidl.engine.config import register_configs
-
-register_configs()
-
-
-@hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
-def main(cfg: DictConfig) -> None:
-    from omnidl.apps.html_report import write_report
-    from omnidl.engine import evaluate
-    summary = evaluate(cfg)
-    print(f"report: {write_report(summary['output_dir'])}")
-
+from omnidl.apps.evaluate import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,5 +1,6 @@
-"""Every file in ``configs/`` composes (through ``train.yaml``, and ``evaluate.yaml`` for models and
-experiments), resolves, and the light nodes (cameras, losses, metrics) instantiate.
+"""Every file in ``configs/`` (``omnidl/configs``, shipped in the package) composes (through ``train.yaml``, and
+``evaluate.yaml`` for models and experiments), resolves, holds only finite numbers, and the light nodes
+(cameras, losses, metrics) instantiate. YAML is read with safe loaders only (a ``!!python`` tag is refused).
 
 The ``*-B*`` FreDSNet ablations train with the loss weights a Bayesian search writes into
 ``configs/loss/<search>_best.yaml``; on a fresh checkout that file does not exist and they fall back to the
@@ -16,9 +17,10 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from omnidl.engine.build import build_metrics
-from omnidl.engine.config import missing_search_result, register_configs
+from omnidl.engine.config import check_finite_config, config_root, missing_search_result, register_configs
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+#: the package's config tree (importlib.resources); the checkout's ``configs/`` links to it
+CONFIGS = config_root()
 #: groups chosen with ``group=option``; ``search`` is added with ``+search=option``
 GROUPS = ("camera", "data", "loss", "metrics", "model", "optim", "sched", "trainer", "viz", "experiment")
 #: folders of configs/ that are not Hydra groups of train.yaml (read by their own programs)
@@ -37,6 +39,7 @@ def _compose(overrides: list[str], config_name: str = "train", root: Path = CONF
     for key in _missing(OmegaConf.to_container(cfg, resolve=False)):  # values the user gives (data.root=???)
         OmegaConf.update(cfg, key, f"<{key}>")
     OmegaConf.to_container(cfg, resolve=True)  # every interpolation resolves
+    check_finite_config(cfg, f"{config_name} {overrides}")  # no shipped config holds a nan/inf
     return cfg
 
 
@@ -109,3 +112,41 @@ def test_searched_weight_experiment_uses_the_search_result(tmp_path):
     assert missing_search_result(cfg) is None
     recall = _compose(["experiment=F-Std-RL-B"], root=root)  # the recall search has not run: fallback
     assert recall.loss.alpha_depth == 12.0 and missing_search_result(recall)
+
+
+def test_the_checkout_configs_folder_is_the_package_tree():
+    link = Path(__file__).resolve().parents[1] / "configs"
+    assert link.resolve() == CONFIGS.resolve() and CONFIGS.parent.name == "omnidl"
+    assert not [p for p in CONFIGS.rglob("*") if p.is_file() and p.suffix != ".yaml" and "__pycache__" not in p.parts]
+
+
+def test_a_python_tag_in_a_config_is_refused(tmp_path):
+    """Hydra/OmegaConf read YAML with a SafeLoader: a config that would run code on load is an error."""
+    root = tmp_path / "configs"
+    shutil.copytree(CONFIGS, root, ignore=shutil.ignore_patterns("*_best.yaml"))
+    marker = tmp_path / "ran"
+    (root / "optim" / "evil.yaml").write_text(
+        f"defaults: [schema, _self_]\nname: !!python/object/apply:os.system ['touch {marker}']\n")
+    with pytest.raises(Exception, match=r"python/object|constructor|could not determine"):
+        _compose(["optim=evil"], root=root)
+    assert not marker.exists()
+
+
+_UNSAFE = {"unsafe_load", "full_load", "load_all", "unsafe_load_all", "full_load_all", "UnsafeLoader", "FullLoader",
+           "Loader"}
+
+
+def test_the_package_reads_yaml_with_safe_loaders_only():
+    """No ``yaml.load``/``unsafe_load``/``full_load`` and no ``Loader=yaml.Loader`` anywhere in ``omnidl/``
+    (``yaml.safe_load``, OmegaConf and Hydra are the readers; issue 48 item 6)."""
+    import ast
+    bad = []
+    for path in sorted(CONFIGS.parent.rglob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        if "yaml" not in text:
+            continue
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "yaml" \
+                    and (node.attr in _UNSAFE or node.attr == "load"):
+                bad.append(f"{path.relative_to(CONFIGS.parents[1])}:{node.lineno} yaml.{node.attr}")
+    assert not bad, "YAML read with a loader that can construct Python objects:\n" + "\n".join(bad)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -15,8 +16,9 @@ from .base import Camera
 from .registry import build, list_cameras
 from .validate import check_size
 
-#: ``configs/camera`` of the source tree (next to the ``omnidl`` package)
-CAMERA_CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs" / "camera"
+#: ``configs/camera`` of the Hydra config tree shipped inside the package (``omnidl/configs/camera``, found with
+#: ``importlib.resources``: the installed package's in a wheel install, the checkout's in an editable one)
+CAMERA_CONFIG_DIR = Path(str(resources.files("omnidl").joinpath("configs", "camera")))
 #: suffixes of Kannala–Brandt calibration text files (``cx cy fx fy W H FOV k1 k2 k3 k4``)
 CALIB_SUFFIXES = (".txt", ".calib", ".dat")
 YAML_SUFFIXES = (".yaml", ".yml")
@@ -34,7 +36,7 @@ _REQUIRED: Any = _Required()
 
 
 def config_names() -> list[str]:
-    """Names of the ``configs/camera/<name>.yaml`` files (empty outside a source checkout)."""
+    """Names of the ``configs/camera/<name>.yaml`` presets shipped with the package (e.g. ``kb_f195``)."""
     return sorted(p.stem for p in CAMERA_CONFIG_DIR.glob("*.yaml"))
 
 

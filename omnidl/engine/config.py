@@ -1,11 +1,16 @@
-"""Structured-config schemas of the engine (Hydra ConfigStore).
+"""Structured-config schemas of the engine (Hydra ConfigStore), where the config tree is, and what a
+composed config may hold.
 
-The YAML files in ``configs/{optim,sched,trainer}/`` and the two entry configs start from these
+The Hydra config tree ships inside the package, ``omnidl/configs/`` (:func:`config_root`, read with
+``importlib.resources``, so an installed wheel trains as a checkout does; the checkout's ``configs/`` is a link
+to it). The YAML files in ``configs/{optim,sched,trainer}/`` and the two entry configs start from these
 schemas (``defaults: [schema, _self_]``), so a misspelt override such as
 ``trainer.max_stpes=3`` or ``optim.lr=fast`` fails at composition time with the key and the schema named.
-Model, data, loss, metrics, camera and viz nodes stay free-form (each is a ``_target_`` node).
+Model, data, loss, metrics, camera and viz nodes stay free-form (each is a ``_target_`` node), so
+:func:`check_finite_config` refuses a ``nan``/``inf`` in any of their numbers where the config is read.
 
 :func:`register_configs` must run before Hydra composes (``train.py``/``evaluate.py`` and the tests call it).
+YAML is read by OmegaConf's loader only (a ``yaml.SafeLoader``: no ``!!python/...`` tags).
 """
 from __future__ import annotations
 
@@ -13,10 +18,12 @@ import math
 import os
 from dataclasses import dataclass, field
 from datetime import datetime
+from importlib import resources
+from pathlib import Path
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 
 @dataclass
@@ -81,6 +88,7 @@ class TrainerConfig:
     monitor_mode: str = "min"          # min | max
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
     resume: bool = False               # continue from <output_dir>/checkpoints/last.pt (needs hydra.run.dir=<run>)
+    overwrite: bool = False            # replace a previous run's results in the run folder (omnidl.engine.run_dir); evaluate: an earlier evaluation
     resume_override: bool = False      # resume although optim/sched/data/... settings differ from the checkpoint
     random_rotation_deg: float = 0.0   # train-time rotation about a random horizontal axis, U(-a, a) ("-r" variants)
     skip_nonfinite: bool = True        # skip (with a warning) batches with NaN/Inf inputs or loss
@@ -143,6 +151,19 @@ class EvaluateConfig(TrainConfig):
     """Root schema of ``configs/evaluate.yaml``."""
 
     task: str = "evaluate"
+
+
+def config_root() -> Path:
+    """The folder of the Hydra config tree shipped with the package (``omnidl/configs``, holding ``train.yaml``,
+    ``evaluate.yaml`` and the groups), found with ``importlib.resources`` so it is the installed package's in a
+    wheel install and the checkout's in an editable one. Hydra composes from a directory on disk: a package
+    imported from a zip file is refused with that said."""
+    root = resources.files("omnidl").joinpath("configs")
+    if not isinstance(root, Path) or not (root / "train.yaml").is_file():
+        raise FileNotFoundError(f"omnidl's Hydra configs were not found at {root} (expected "
+                                "omnidl/configs/train.yaml inside the installed package; Hydra needs them on disk, "
+                                "not in a zip file): reinstall omnidl with pip install")
+    return root
 
 
 _REGISTERED = False
@@ -236,3 +257,42 @@ def check_num_threads(value: Any, key: str = "trainer.num_threads") -> int | str
         return int(value)
     raise ValueError(f"{key}={value!r}: expected 'auto' (pick from the machine's load), 0 (torch's default) "
                      "or a positive number of intra-op threads")
+
+
+def _leaves(node: Any, prefix: str) -> list[tuple[str, Any]]:
+    """``(dotted key, value)`` of every leaf of an omegaconf container; a value whose interpolation cannot be
+    resolved here (``${hydra:...}`` outside a Hydra run, a ``???``) is left out: it is not a number yet."""
+    out: list[tuple[str, Any]] = []
+    keys = list(node.keys()) if isinstance(node, DictConfig) else list(range(len(node)))
+    for key in keys:
+        name = f"{prefix}{key}" if isinstance(node, DictConfig) else f"{prefix[:-1]}[{key}]"
+        if OmegaConf.is_missing(node, key):
+            continue
+        try:
+            value = node[key]
+        except Exception:  # noqa: BLE001 (an interpolation that only Hydra's runtime or a later merge resolves)
+            continue
+        if isinstance(value, (DictConfig, ListConfig)):
+            out += _leaves(value, f"{name}.")
+        else:
+            out.append((name, value))
+    return out
+
+
+def check_finite_config(cfg: Any, what: str = "config") -> None:
+    """Refuse a composed config holding a non-finite number (``nan``, ``inf``, ``-inf``) in any field, e.g.
+    ``loss.alpha_depth=nan`` (a NaN weight would train without that loss term, a NaN learning rate on garbage):
+    ``ValueError`` naming every such key with its value. Interpolations count with their resolved value.
+
+    Numbers are floats here (Hydra's override grammar and YAML read ``nan``/``.inf`` as floats); a *string*
+    ``"nan"`` is not a number and is left to the field's own check. No shipped config holds a non-finite value:
+    a bound that is "none" is ``null`` (or a documented sentinel such as ``-1``), never ``inf``.
+    """
+    if not isinstance(cfg, (DictConfig, ListConfig)):
+        cfg = OmegaConf.create(cfg)
+    bad = [(k, v) for k, v in _leaves(cfg, "") if isinstance(v, float) and not math.isfinite(v)]
+    if bad:
+        listed = ", ".join(f"{k}={v!r}" for k, v in bad)
+        raise ValueError(f"{what}: non-finite value(s) {listed}: every number of a config must be finite (a NaN "
+                         "or an infinite weight, rate or size would train or evaluate on garbage); give a finite "
+                         "number, or null where the field accepts 'none'")

@@ -218,3 +218,19 @@ def test_scale_policy_is_the_old_two_percent_stretch(calib_file, f195, tmp_path)
     assert resolve_camera(yaml) == f195
     # an explicit argument wins over the config key
     assert resolve_camera(yaml, 1088, 960, size_policy="pad").scale_x == 1.0
+
+
+def test_presets_come_from_the_package_wherever_the_command_runs(tmp_path, monkeypatch):
+    """Camera presets (``configs/camera/<name>.yaml``) ship inside the package (importlib.resources), so a name
+    such as ``kb_f195`` resolves from any working directory and in a wheel install (tests/test_wheel.py)."""
+    from importlib import resources
+    from pathlib import Path
+
+    import omnidl
+    from omnidl.cameras.resolve import config_names
+    assert CAMERA_CONFIG_DIR == Path(str(resources.files("omnidl").joinpath("configs", "camera")))
+    assert CAMERA_CONFIG_DIR.parent.parent == Path(omnidl.__file__).parent
+    assert {"kb_f195", "kb_f165", "equirect", "pinhole"} <= set(config_names())
+    monkeypatch.chdir(tmp_path)
+    cam = resolve_camera("kb_f195")
+    assert (cam.width, cam.height) == (1080, 960) and type(cam).__name__ == "KannalaBrandt"

@@ -24,6 +24,7 @@ from omnidl.data.collate import collate_samples
 from omnidl.engine import register_configs, train
 from omnidl.engine.build import MetricCollection, build_model
 from omnidl.engine.checkpoint import load_checkpoint, save_checkpoint
+from omnidl.engine.config import config_root
 from omnidl.engine.validation import run_validation
 from omnidl.metrics.depth import DEPTH_METRICS, DepthMetrics
 from omnidl.metrics.radial import RadialMetrics
@@ -33,8 +34,8 @@ from .banks import bank_node
 from .tables import SEG_KEYS
 
 log = logging.getLogger("omnidl.apps.fisheye")
-#: the Hydra config tree of the source checkout
-CONFIG_DIR = Path(__file__).resolve().parents[3] / "configs"
+#: the Hydra config tree shipped in the package (omnidl/configs; importlib.resources)
+CONFIG_DIR = config_root()
 
 
 def compose_experiment(experiment: str, pcfg: DictConfig, overrides: list[str] = ()) -> DictConfig:
