@@ -1,13 +1,17 @@
-"""A small OpenEXR reader for float depth maps (Pano3D / 3D60 ``*.exr``), with no dependency beyond NumPy/zlib.
+"""OpenEXR float depth maps (Pano3D / 3D60 ``*.exr``).
 
-OpenCV reads EXR only when built with it and ``OPENCV_IO_ENABLE_OPENEXR`` is set before ``cv2`` is imported;
-this reader works everywhere for the files depth datasets write: single-part **scanline** images with
-``NONE``, ``RLE``, ``ZIPS`` or ``ZIP`` compression and ``HALF`` / ``FLOAT`` / ``UINT`` channels (the OpenEXR
-file layout: magic ``20000630``, version 2, header attributes, a chunk offset table, then per chunk
-``y``, byte count and the channels of each line in the header's (alphabetical) order). Tiled, multi-part,
-deep and PIZ/PXR24/B44/DWA files are refused with an error naming the file and the feature.
+:func:`read_exr` reads through the **OpenEXR** package (``pip install OpenEXR``, the ``pano3d`` extra): every
+compression (NONE, RLE, ZIPS, ZIP, PIZ, PXR24, B44, B44A, DWAA, DWAB, HTJ2K, ...), scanline and tiled
+single-part files. Without the package it falls back to :func:`read_exr_builtin`, a reader written from the
+OpenEXR file layout with no dependency beyond NumPy/zlib (magic ``20000630``, version 2, header attributes, a
+chunk offset table, then per chunk ``y``, byte count and the channels of each line in the header's
+(alphabetical) order) for single-part **scanline** files with ``NONE``, ``RLE``, ``ZIPS`` or ``ZIP``
+compression; any other file is refused with an error naming the file, the feature and the package to install.
+(OpenCV reads EXR only when built with it and ``OPENCV_IO_ENABLE_OPENEXR`` is set before ``cv2`` is imported.)
 
-:func:`read_exr` returns every channel; :func:`read_exr_depth` one channel as a float32 ``(H, W)`` depth map.
+Multi-part and deep files are refused; channels are returned as stored (``HALF`` float16, ``FLOAT`` float32,
+``UINT`` uint32). :func:`read_exr_depth` returns one channel as a float32 ``(H, W)`` depth map. A truncated or
+corrupt file is an :class:`~omnidl.data.validate.UnreadableFileError` naming it.
 """
 from __future__ import annotations
 
@@ -41,7 +45,8 @@ def _header(buf: bytes, path: Path) -> tuple[dict, int]:
         raise invalid(path, "EXR version", flags & 0xFF, "2")
     for bit, what in ((0x200, "tiled"), (0x800, "deep"), (0x1000, "multi-part")):
         if flags & bit:
-            raise invalid(path, "EXR layout", what, "a single-part scanline image (convert it, e.g. with oiiotool)")
+            raise invalid(path, "EXR layout", what, "a single-part scanline image without the OpenEXR package "
+                          "(pip install OpenEXR, or omnidl[pano3d])")
     pos, attrs = 8, {}
     while True:
         name, pos = _cstr(buf, pos, path)
@@ -93,8 +98,57 @@ def _unrle(data: bytes, path: Path) -> bytes:
     return bytes(out)
 
 
+def _openexr():
+    """The OpenEXR package (3.3 or later: ``OpenEXR.File``), or None."""
+    try:
+        import OpenEXR
+    except ImportError:
+        return None
+    return OpenEXR if hasattr(OpenEXR, "File") else None
+
+
 def read_exr(path: str | Path) -> dict[str, np.ndarray]:
-    """Every channel of a scanline OpenEXR file as ``{name: (H, W) array}`` (float16/float32/uint32 as stored)."""
+    """Every channel of a single-part OpenEXR file as ``{name: (H, W) array}`` (float16/float32/uint32 as stored),
+    through the OpenEXR package when it is installed, else :func:`read_exr_builtin` (module docstring)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UnreadableFileError(f"missing file {path} (EXR depth)")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if len(head) < 8 or struct.unpack_from("<i", head, 0)[0] != MAGIC:
+        raise UnreadableFileError(f"{path} is not an OpenEXR file (no 20000630 magic number)")
+    exr = _openexr()
+    if exr is None:
+        return read_exr_builtin(path)
+    from .readers import cv2_path
+    with cv2_path(path) as name:                                      # a name the native library can take
+        try:
+            f = exr.File(name, separate_channels=True)
+            parts = list(f.parts)
+            if len(parts) > 1:
+                raise invalid(path, "EXR layout", f"multi-part ({len(parts)} parts)", "a single-part image")
+            if not parts:
+                raise UnreadableFileError(f"truncated or corrupt EXR file {path} (OpenEXR read no image part)")
+            header = f.header()
+            kind = str(header.get("type", ""))
+            if "deep" in kind:
+                raise invalid(path, "EXR layout", "deep", "a flat scanline or tiled image")
+            (x0, y0), (x1, y1) = (np.asarray(v).tolist() for v in header["dataWindow"])
+            planes = {str(n): np.ascontiguousarray(c.pixels) for n, c in f.channels().items()}
+        except (RuntimeError, ValueError, OSError, KeyError, TypeError) as e:
+            if isinstance(e, UnreadableFileError):
+                raise
+            raise UnreadableFileError(f"truncated or corrupt EXR file {path} (OpenEXR: {e})") from e
+    w, h = x1 - x0 + 1, y1 - y0 + 1
+    for n, a in planes.items():
+        if a.shape != (h, w):
+            raise invalid(path, f"EXR channel {n!r}", f"of shape {a.shape}", f"({h}, {w}) (the data window; "
+                          "subsampled channels are not read)")
+    return planes
+
+
+def read_exr_builtin(path: str | Path) -> dict[str, np.ndarray]:
+    """The dependency-free reader (NONE, RLE, ZIPS, ZIP single-part scanline files; module docstring)."""
     path = Path(path)
     if not path.is_file():
         raise UnreadableFileError(f"missing file {path} (EXR depth)")
@@ -106,8 +160,8 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
     chans = _channels(attrs["channels"][1], path)
     comp = attrs["compression"][1][0]
     if comp not in _LINES:
-        raise invalid(path, "EXR compression", _COMPRESSION.get(comp, comp), "NONE, RLE, ZIPS or ZIP (re-save the file "
-                      "with one of them)")
+        raise invalid(path, "EXR compression", _COMPRESSION.get(comp, comp), "NONE, RLE, ZIPS or ZIP without the "
+                      "OpenEXR package (pip install OpenEXR, or omnidl[pano3d], reads every compression)")
     x0, y0, x1, y1 = struct.unpack("<iiii", attrs["dataWindow"][1])
     w, h = x1 - x0 + 1, y1 - y0 + 1
     if w <= 0 or h <= 0:

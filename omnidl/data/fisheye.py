@@ -40,6 +40,7 @@ from omnidl.cameras.base import Camera, ResizedCamera
 from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
 from omnidl.geometry import euler_to_matrix, reproject
+from .readers import image_to_float
 
 SPLITS = {"train": 0, "val": 1, "test": 2}
 
@@ -178,7 +179,8 @@ class ViewsFromPanoramas(Dataset):
         src = Equirectangular(width=int(w), height=int(h))
         roll, pitch, yaw = self.angles(index)
         R = euler_to_matrix(roll, pitch, yaw).to(torch.float64)
-        image, valid = reproject(pano["image"].float(), src, self.camera, R, mode="bilinear")
+        img = image_to_float(pano["image"], f"panorama {k}").float()       # uint8: / 255 before any arithmetic
+        image, valid = reproject(img, src, self.camera, R, mode="bilinear")
         depth, dvalid = reproject(pano["depth"].float().reshape(1, h, w), src, self.camera, R, mode=self.depth_mode)
         if self.depth_mode == "bilinear":  # a bilinear sample touching an invalid (0) depth is invalid
             zero, _ = reproject((pano["depth"].reshape(1, h, w) <= 0).float(), src, self.camera, R, mode="bilinear")

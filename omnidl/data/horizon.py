@@ -30,7 +30,8 @@ from torch.utils.data import Dataset
 from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.geometry.panorama import rotate_panorama
 from omnidl.geometry.rotations import random_tilt_rotation, up_from_rotation
-from .validate import invalid, read_image
+from .readers import image_to_float
+from .validate import invalid
 
 
 def horizon_heatmaps(rotation: Tensor, height: int, width: int, sigma_deg: float = 3.0,
@@ -155,7 +156,7 @@ class RotatedPanoramas(Dataset):
         if not isinstance(item, dict) or "image" not in item:
             raise KeyError(f"RotatedPanoramas: base item {index} has no 'image' (got "
                            f"{sorted(item) if isinstance(item, dict) else type(item).__name__})")
-        img = torch.as_tensor(item["image"]).float()
+        img = image_to_float(item["image"], f"RotatedPanoramas: base item {index}").float()   # uint8: / 255 first
         if img.ndim != 3 or img.shape[0] != 3 or img.shape[2] != 2 * img.shape[1]:
             raise ValueError(f"RotatedPanoramas: base item {index}: expected an equirectangular RGB image (3, H, 2H), "
                              f"got {tuple(img.shape)}")
@@ -245,11 +246,10 @@ class PanoramaFolder(Dataset):
 
 
 def read_rgb(path: str | Path) -> Tensor:
-    """``(3, H, W)`` float32 RGB in ``[0, 1]`` of an image file (8 or 16 bit, gray or RGB[A]).
+    """``(3, H, W)`` float32 RGB in ``[0, 1]`` of an image file (8 or 16 bit, gray or RGB[A]), upright: the reading
+    policy of :func:`omnidl.data.readers.read_rgb`.
 
     A missing, empty, truncated or undecodable file raises
     :class:`~omnidl.data.validate.UnreadableFileError` (an ``OSError`` and a ``CorruptSampleError``) naming it."""
-    import numpy as np
-    arr = read_image(path, "image", channels=3, dtypes=(np.uint8, np.uint16))
-    scale = 65535.0 if arr.dtype == np.uint16 else 255.0
-    return torch.from_numpy(arr.astype(np.float32) / scale).permute(2, 0, 1)
+    from .readers import read_rgb as _read
+    return _read(path)

@@ -17,10 +17,11 @@ import torch
 
 from ..cameras import Equirectangular
 from ..geometry.rotations import UPRIGHT_TO_WORLD
-from .layout_sample import MAX_WALLS, pad_corners
+from .layout_sample import (CAMERA_HEIGHT_RANGE, MAX_WALLS, check_room, check_room_units, pad_corners,
+                            polygon_from_corners_cam)
 from .layout_targets import boundary_targets, corner_heat
-from .readers import rgb_to_tensor
-from .validate import DataValidationError, check_label_cor, read_raw, read_text
+from .readers import array_to_tensor, read_rgb_array
+from .validate import DataValidationError, check_label_cor, read_text
 
 
 def read_label_cor(path: str | Path, width: int | None = None, height: int | None = None,
@@ -48,6 +49,29 @@ def read_label_cor(path: str | Path, width: int | None = None, height: int | Non
     if width is not None and height is not None:
         check_label_cor(arr, path, width, height, min_corners)
     return arr
+
+
+def check_camera_height(camera_height: float, what: str) -> float:
+    """An assumed camera height (a setting, metres) in :data:`~omnidl.data.layout_sample.CAMERA_HEIGHT_RANGE`."""
+    lo, hi = CAMERA_HEIGHT_RANGE
+    if not (np.isfinite(camera_height) and lo <= camera_height <= hi):
+        raise ValueError(f"{what}: camera_height={camera_height}; expected {lo:g}..{hi:g} metres above the floor "
+                         "(a height in centimetres?)")
+    return float(camera_height)
+
+
+def room_from_label_cor(cor: np.ndarray, path: str | Path, width: int, height: int, camera_height: float = 1.6
+                        ) -> np.ndarray:
+    """Camera-frame corners ``(K, 2, 3)`` of a central panorama's checked ``label_cor``, with the room checked as
+    every layout adapter checks it (:func:`~omnidl.data.layout_sample.check_room`: corners in wall order, none
+    twice, the camera inside; :func:`~omnidl.data.layout_sample.check_room_units`); errors name ``path``."""
+    try:
+        cc = corners_from_label_cor(cor, width, height, camera_height)
+    except ValueError as e:
+        raise DataValidationError(f"{path}: {e}") from e
+    poly = check_room(polygon_from_corners_cam(cc), path, "label_cor (top view of the floor corners)")
+    check_room_units(poly, camera_height, float(-cc[0, 0, 1]), path, "label_cor room")   # camera y is down
+    return cc
 
 
 def write_label_cor(path: str | Path, cor: np.ndarray) -> None:
@@ -102,7 +126,8 @@ class HorizonNetFolderDataset(torch.utils.data.Dataset):
     PanoContext / Stanford2D-3D as HorizonNet ships them; ``val/`` is accepted for ``valid/``).
 
     Every sample is validated (:mod:`omnidl.data.validate`): an unreadable image or an invalid ``label_cor``
-    (a point outside the image, NaN, ceiling below floor, fewer than 3 corners) raises a
+    (a point outside the image, NaN, ceiling below floor, ceiling and floor in different columns, a corner listed
+    twice, fewer than 3 corners, corners out of wall order, a room not around the camera or over 100 m) raises a
     :class:`~omnidl.data.robust.CorruptSampleError` naming the file (skipped with a warning in training).
 
     Keys (the standard layout sample, :mod:`omnidl.data.layout_sample`): ``image (3,H,W)``, ``boundary (2,W)``
@@ -113,12 +138,11 @@ class HorizonNetFolderDataset(torch.utils.data.Dataset):
     def __init__(self, root: str | Path, width: int | None = None, height: int | None = None,
                  camera_height: float = 1.6, split: str | None = None, max_walls: int = MAX_WALLS,
                  max_samples: int | None = None) -> None:
+        check_camera_height(camera_height, "HorizonNetFolderDataset")                # settings first
         self.root = split_root(Path(root).expanduser(), split, "HorizonNetFolderDataset")
         img_dir, lab_dir = self.root / "img", self.root / "label_cor"
         if not img_dir.is_dir() or not lab_dir.is_dir():
             raise FileNotFoundError(f"HorizonNet folder {self.root}: needs img/ and label_cor/ sub-folders")
-        if not (np.isfinite(camera_height) and camera_height > 0):
-            raise ValueError(f"HorizonNetFolderDataset: camera_height must be > 0 metres, got {camera_height}")
         self.items = []
         for p in sorted(img_dir.iterdir()):
             if p.suffix.lower() in (".png", ".jpg", ".jpeg"):
@@ -139,15 +163,12 @@ class HorizonNetFolderDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict:
         p, lab = self.items[i]
-        bgr = read_raw(p, 1, "image")                                    # IMREAD_COLOR; unreadable -> named error
-        H0, W0 = bgr.shape[:2]
+        rgb = read_rgb_array(p, "image")                                 # the reading policy; unreadable -> named error
+        H0, W0 = rgb.shape[:2]
         W, H = self.width or W0, self.height or H0
-        img = rgb_to_tensor(bgr, (W, H))
+        img = array_to_tensor(rgb, (W, H))
         cor = read_label_cor(lab, W0, H0) * np.array([W / W0, H / H0])
-        try:
-            cc = corners_from_label_cor(cor, W, H, self.camera_height)
-        except ValueError as e:
-            raise DataValidationError(f"{lab}: {e}") from e
+        cc = room_from_label_cor(cor, lab, W, H, self.camera_height)
         padded = pad_corners(cc, self.max_walls, lab)
         cam = Equirectangular(width=W, height=H)
         rows, valid = boundary_targets(cc, cam)

@@ -16,8 +16,9 @@ a top-view polygon ``(K, 2)`` (metres), the floor ``camera_height`` below the ca
 * ``camera_height ()`` metres (the central layout hooks read their scale from it);
 * ``meta``: ``name``, ``file``, ``rig_radius = 0``, plus what the adapter adds.
 
-:func:`check_room` is the one validation of a room polygon (finite, at least 3 corners, simple, non-zero
-area, the camera inside).
+:func:`check_room` is the one validation of a room polygon (finite, at least 3 corners, no corner twice, simple,
+non-zero area, the camera inside), used by every layout adapter (label_cor ones through
+:func:`polygon_from_corners_cam`); :func:`check_room_units` the one check of its units (metres).
 """
 from __future__ import annotations
 
@@ -31,28 +32,31 @@ from ..cameras import Equirectangular
 from ..geometry.polygon import is_simple, points_in_polygon, polygon_area
 from ..geometry.rotations import UPRIGHT_TO_WORLD
 from .layout_targets import boundary_targets, corner_heat
-from .validate import DataValidationError, invalid, read_image
+from .readers import image_to_float
+from .validate import DataValidationError, invalid
 
 #: default padding of ``corners_cam`` (MatterportLayout rooms have up to 22 corners)
 MAX_WALLS = 32
+#: plausible camera height above the floor, metres (the unit checks of every layout adapter, docs/data.md)
+CAMERA_HEIGHT_RANGE = (0.3, 5.0)
+#: the largest room (top-view extent and floor-to-ceiling height), metres
+MAX_ROOM_SIZE = 100.0
+#: two corners closer than this (metres) are one corner listed twice
+DUPLICATE_TOL = 1e-6
 _R = np.asarray(UPRIGHT_TO_WORLD, dtype=np.float64)
 
 
 def read_panorama(path: str | Path, width: int | None, height: int | None) -> torch.Tensor:
-    """``(3, H, W)`` float32 RGB in ``[0, 1]`` of an equirectangular image, resized to ``width x height`` when given.
+    """``(3, H, W)`` float32 RGB in ``[0, 1]`` of an equirectangular image (the reading policy of
+    :func:`omnidl.data.readers.read_rgb`: EXIF orientation applied), resized to ``width x height`` when given.
 
-    The stored image must be a full panorama (width = 2 x height); errors name the file."""
-    import cv2
-    arr = read_image(path, "panorama", channels=3)
+    The stored (upright) image must be a full panorama (width = 2 x height); errors name the file."""
+    from .readers import read_rgb_array, array_to_tensor
+    arr = read_rgb_array(path, "panorama")
     h0, w0 = arr.shape[:2]
     if w0 != 2 * h0:
         raise invalid(path, "panorama", f"{w0}x{h0}", "an equirectangular image with width = 2 x height")
-    if arr.dtype == np.uint16:
-        arr = (arr / 257.0).round().astype(np.uint8)
-    W, H = width or w0, height or h0
-    if (W, H) != (w0, h0):
-        arr = cv2.resize(arr, (W, H), interpolation=cv2.INTER_AREA if W < w0 else cv2.INTER_LINEAR)
-    return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).float().div_(255.0)
+    return array_to_tensor(arr, (width or w0, height or h0))
 
 
 def check_room(polygon: np.ndarray, path: str | Path, field: str) -> np.ndarray:
@@ -66,6 +70,12 @@ def check_room(polygon: np.ndarray, path: str | Path, field: str) -> np.ndarray:
         raise invalid(path, field, f"corner {k} = {p[k].tolist()}", "finite coordinates")
     if len(p) < 3:
         raise invalid(path, field, f"{len(p)} corner(s)", "at least 3 corners (a room polygon)")
+    dist = np.linalg.norm(p[:, None] - p[None], axis=-1)
+    dist[np.arange(len(p)), np.arange(len(p))] = np.inf
+    if (dist <= DUPLICATE_TOL).any():
+        j, k = sorted(int(i) for i in np.argwhere(dist <= DUPLICATE_TOL)[0])
+        raise invalid(path, field, f"corner {k} = {p[k].tolist()} repeating corner {j} (a duplicated point)",
+                      "each corner once")
     if not is_simple(p, 1e-9):
         raise invalid(path, field, f"a self-intersecting polygon ({len(p)} corners)",
                       "a simple polygon (walls in order, no crossings)")
@@ -75,6 +85,36 @@ def check_room(polygon: np.ndarray, path: str | Path, field: str) -> np.ndarray:
         raise invalid(path, field, "a room that does not contain the camera",
                       "the camera (0, 0) inside the room polygon")
     return p
+
+
+def check_room_units(polygon: np.ndarray, camera_height: float, ceiling_height: float, path: str | Path,
+                     field: str = "room") -> None:
+    """Plausible units of a room in metres, else a :class:`~omnidl.data.validate.DataValidationError` naming
+    ``path``: the camera :data:`CAMERA_HEIGHT_RANGE` above the floor (a height in centimetres is 100x too
+    large), the ceiling above the camera, and the room (its top view and its height) at most
+    :data:`MAX_ROOM_SIZE` across (vertices in millimetres or x1e4 are not metres)."""
+    for fld, v in (("camera height", camera_height), ("ceiling height above the camera", ceiling_height)):
+        if not (np.isfinite(v) and v > 0):
+            raise invalid(path, f"{field} {fld}", v, "a finite positive height in metres")
+    lo, hi = CAMERA_HEIGHT_RANGE
+    if not lo <= camera_height <= hi:
+        raise invalid(path, f"{field} camera height", f"{camera_height:g} m", f"{lo:g}..{hi:g} m above the floor "
+                      "(a height in centimetres or a wrong scale?)")
+    if camera_height + ceiling_height > MAX_ROOM_SIZE:
+        raise invalid(path, f"{field} height", f"{camera_height + ceiling_height:g} m (floor to ceiling)",
+                      f"at most {MAX_ROOM_SIZE:g} m (heights in centimetres or a wrong scale?)")
+    p = np.asarray(polygon, dtype=np.float64)
+    size = float((p.max(0) - p.min(0)).max()) if p.size else 0.0
+    if size > MAX_ROOM_SIZE:
+        raise invalid(path, f"{field} polygon", f"{size:g} m across", f"a room at most {MAX_ROOM_SIZE:g} m across "
+                      "in metres (vertices in another unit or a wrong scale?)")
+
+
+def polygon_from_corners_cam(corners_cam: np.ndarray) -> np.ndarray:
+    """``(K, 2, 3)`` ``[ceiling, floor]`` camera-frame corners -> the top-view floor polygon ``(K, 2)``
+    (layout frame)."""
+    c = np.asarray(corners_cam, dtype=np.float64)
+    return (c[:, 1] @ _R.T)[:, :2]
 
 
 def room_to_corners_cam(polygon: np.ndarray, camera_height: float, ceiling_height: float) -> np.ndarray:
@@ -114,9 +154,8 @@ def layout_sample(image: torch.Tensor, polygon: np.ndarray, camera_height: float
     """
     src = label_file or file
     poly = check_room(polygon, src, "room polygon")
-    for fld, v in (("camera height", camera_height), ("ceiling height above the camera", ceiling_height)):
-        if not (np.isfinite(v) and v > 0):
-            raise invalid(src, fld, v, "a finite positive height")
+    check_room_units(poly, camera_height, ceiling_height, src)
+    image = image_to_float(image, f"{file} image")
     H, W = image.shape[-2:]
     cam = Equirectangular(width=W, height=H)
     cc = room_to_corners_cam(poly, camera_height, ceiling_height)

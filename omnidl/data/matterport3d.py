@@ -4,7 +4,8 @@ Expected layout::
 
     <root>/<scene_id>/<name>_rgb.png          8-bit RGB panorama (2:1)
     <root>/<scene_id>/<name>_depth.png        16-bit depth, metres = value / 4000, 0 = missing
-    <root>/<scene_id>/<name>_semantic.png     optional: 8-bit class ids of omnidl.classes (others: an error)
+    <root>/<scene_id>/<name>_semantic.png     optional: class ids of omnidl.classes (8/16-bit grey or palette
+                                              indices; other ids: an error)
     <root>/scenes_<split>.txt                 optional: scene ids of a split, one per line
 
 Without ``scenes_<split>.txt`` every scene folder is used for every split (and a warning says so).
@@ -19,15 +20,16 @@ import torch
 
 from omnidl.classes import NUM_CLASSES
 from .paired import PairedPanoramas, PanoramaFiles, check_folder, drop_incomplete, to_tensor_labels
-from .readers import read_depth_png, resize_labels
-from .validate import check_class_ids, read_image
+from .readers import read_depth_png, read_label_map, resize_labels
+from .splits import check_relative_path
+from .validate import check_class_ids, read_text
 
 log = logging.getLogger("omnidl.data")
 DEPTH_SCALE = 4000.0
 
 
 def decode_class_png(path: Path, expect_wh, out_wh) -> torch.Tensor:
-    raw = read_image(path, "semantic map", channels=1, dtypes=(np.uint8, np.uint16), size=expect_wh)
+    raw = read_label_map(path, "semantic map", dtypes=(np.uint8, np.uint16), size=expect_wh)
     labels = check_class_ids(raw.astype(np.int64), path, "semantic map", NUM_CLASSES)
     return to_tensor_labels(resize_labels(labels, out_wh))
 
@@ -47,7 +49,8 @@ class Matterport3D(PairedPanoramas):
         if scenes is None:
             split_file = root_p / f"scenes_{split}.txt"
             if split_file.is_file():
-                scenes = [s.strip() for s in split_file.read_text().splitlines() if s.strip()]
+                scenes = [check_relative_path(s.strip(), f"{split_file}:{i}")
+                          for i, s in enumerate(read_text(split_file, "scene list").splitlines(), 1) if s.strip()]
             else:
                 scenes = sorted(p.name for p in root_p.iterdir() if p.is_dir())
                 log.warning("Matterport3D: %s not found; using all %d scene folders for split %r", split_file,

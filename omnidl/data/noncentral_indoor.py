@@ -34,12 +34,12 @@ import torch
 
 from ..cameras import Equirectangular
 from ..geometry.rotations import UPRIGHT_TO_WORLD
-from .horizonnet_format import SPLIT_DIRS, read_label_cor
-from .layout_sample import MAX_WALLS, pad_corners
+from .horizonnet_format import SPLIT_DIRS, check_camera_height, read_label_cor
+from .layout_sample import MAX_WALLS, check_room, check_room_units, pad_corners, polygon_from_corners_cam
 from .layout_targets import boundary_targets, corner_heat
-from .readers import rgb_to_tensor
-from .splits import check_split_name, find_split_file, read_split_list
-from .validate import DataValidationError, UnreadableFileError, check_range, invalid, load_npy, read_image, read_raw
+from .readers import array_to_tensor, read_rgb_array
+from .splits import check_relative_path, check_split_name, find_split_file, read_split_list
+from .validate import DataValidationError, UnreadableFileError, check_range, invalid, load_npy, read_image
 
 DEPTH_MAX = 10.0
 SPLIT_PATTERNS = ("split/{split}.txt", "{split}.txt")
@@ -108,7 +108,10 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
 
     Every file is validated (:mod:`omnidl.data.validate`): sizes against the image, ``depth_coded`` 24-bit
     RGB (a grayscale one is refused), finite ``3D_gt``/``cam_pose``/``label_ang`` of the documented shapes,
-    ``label_cor`` inside the image. A bad file raises a :class:`~omnidl.data.robust.CorruptSampleError` naming
+    ``label_cor`` inside the image with each corner's ceiling and floor in one column and no corner twice, the same
+    number of corners in ``label_cor`` and ``3D_gt``, the room's floor polygon simple and around the rig
+    (:func:`~omnidl.data.layout_sample.check_room`) and in metres (camera 0.3..5 m above the floor, room at most
+    100 m across; :func:`~omnidl.data.layout_sample.check_room_units`). A bad file raises a :class:`~omnidl.data.robust.CorruptSampleError` naming
     it (skipped with a warning in training).
     """
 
@@ -131,12 +134,13 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
                 names = read_split_list(find_split_file(self.root, split, SPLIT_PATTERNS, "NonCentralIndoorDataset"))
         if boundary_source not in ("label_ang", "edges", "corners", "label_cor"):
             raise ValueError(f"boundary_source must be label_ang, edges, corners or label_cor, got {boundary_source!r}")
-        if not camera_height > 0:
-            raise ValueError(f"camera_height must be > 0 metres, got {camera_height}")
+        check_camera_height(camera_height, "NonCentralIndoorDataset")
         img_dir = self.root / "img"
         if not img_dir.is_dir():
             raise FileNotFoundError(f"NonCentralIndoorDataset: {img_dir} not found")
         self.names = list(names) if names is not None else sorted(p.stem for p in img_dir.glob("*.png"))
+        for m in self.names:
+            check_relative_path(m, f"NonCentralIndoorDataset names of {self.root}")
         if not self.names:
             raise FileNotFoundError(f"NonCentralIndoorDataset: no images in {img_dir}")
         lost = [m for m in self.names if not (img_dir / f"{m}.png").is_file()]
@@ -183,14 +187,14 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
         from ..cameras import build
         name = self.names[i]
         img_path = self._file("img", f"{name}.png")
-        bgr = read_raw(img_path, 1, "image")                              # IMREAD_COLOR; unreadable -> named error
-        H, W = bgr.shape[:2]
+        rgb = read_rgb_array(img_path, "image")                 # the reading policy; unreadable -> named error
+        H, W = rgb.shape[:2]
         if self.size is not None and (W, H) != self.size:
             raise invalid(img_path, "image", f"{W}x{H}", f"{self.size[0]}x{self.size[1]} (data.width x data.height; "
                           "non-central panoramas are not resized: set them to the images' size)")
         rc = self._rc(name)
         cam = build({"type": "noncentral_pano", "width": W, "height": H, "rc": rc})
-        out: dict[str, Any] = {"image": rgb_to_tensor(bgr)}
+        out: dict[str, Any] = {"image": array_to_tensor(rgb)}
         if self.depth:
             path = self._file("depth_coded", f"{name}.png")
             coded = read_image(path, "depth_coded", channels=3, dtypes=(np.uint8,), size=(W, H), convert=False)
@@ -213,9 +217,17 @@ class NonCentralIndoorDataset(torch.utils.data.Dataset):
                 raise invalid(self.root / "DataPython" / "cam_pose" / f"{name}.npy", "cam_pose",
                               f"{pose.size} values", "3 values (x, y, z of the camera)")
             n, n_src = len(gt) // 2, gt_path
+            if len(cor) // 2 > n:
+                raise invalid(cor_path, "label_cor", f"{len(cor) // 2} corners", f"at most the {n} corners of "
+                              f"{gt_path.name} (3D_gt; label_cor lists the visible ones): the files of one sample "
+                              "must describe the same room")
             lay = dataset_to_layout(gt - pose.reshape(1, 3))
             corners = np.stack([lay[:n], lay[n:]], 1)                  # (N, 2, 3) layout frame
             corners_cam = corners @ np.asarray(UPRIGHT_TO_WORLD)         # -> OpenCV camera frame (R^T)
+        src = cor_path if n_src is None else n_src
+        poly = check_room(polygon_from_corners_cam(corners_cam), src, "room (top view of the floor corners)")
+        check_room_units(poly, float(corners_cam[:, 1, 1].mean()), float(-corners_cam[:, 0, 1].mean()), src,
+                         "room")                                        # camera frame: y is down
         out["corners_cam"] = pad_corners(corners_cam, self.max_walls, cor_path if n_src is None else n_src)
         out["num_walls"] = torch.tensor(n)
         out["corner_heat"] = corner_heat(cor[0::2, 0] + 0.5, W)

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from .readers import read_raw, rgb_to_tensor
+from .readers import array_to_tensor, read_rgb_array
 from .validate import check_size  # noqa: F401  (re-exported: the loaders import it from here)
 
 log = logging.getLogger("omnidl.data")
@@ -83,15 +83,16 @@ class PairedPanoramas(Dataset):
 
     def __getitem__(self, index: int) -> dict:
         s = self.samples[index]
-        raw = read_raw(s.image, flags=1)  # IMREAD_COLOR; raises CorruptSampleError naming the file
-        wh = (raw.shape[1], raw.shape[0])
+        rgb = read_rgb_array(s.image)            # the reading policy (readers.py); a bad file: CorruptSampleError
+        wh = (rgb.shape[1], rgb.shape[0])
         out_wh = self.size or wh
-        sample = {"image": rgb_to_tensor(raw, size=out_wh)}
+        sample = {"image": array_to_tensor(rgb, size=out_wh)}
         if s.depth is not None and self.decode_depth is not None:
             sample["depth"] = self.decode_depth(s.depth, wh, out_wh)
         if s.semantic is not None and self.decode_semantic is not None:
             sample["semantic"] = self.decode_semantic(s.semantic, wh, out_wh)
-        sample["meta"] = {"name": s.name, "image": str(s.image), "index": int(index), "dataset": self.what}
+        sample["meta"] = {"name": s.name, "image": str(s.image), "index": int(index), "dataset": self.what,
+                          "stored_size": list(wh)}
         return sample
 
 

@@ -7,10 +7,12 @@ Files (3D60's naming, which Pano3D keeps)::
 
 A split is a list file of ``<rgb path> <depth path>`` lines relative to ``root`` (the lists UniFuse and others
 ship, e.g. ``3d60_test.txt``); without one, every ``*_color_*.png`` under ``root`` with its ``_depth_`` EXR
-twin is used. EXR files are read with :mod:`omnidl.data.exr` (no OpenCV EXR support needed).
+twin is used. EXR files are read with :mod:`omnidl.data.exr` (the OpenEXR package: every compression; no
+OpenCV EXR support needed). Paths of a list must stay inside ``root`` (no absolute paths, no ``..``).
 
 Depth: values above ``max_depth`` (3D60: 10 m, the far-away / outside-the-mesh pixels) and non-finite values
-become 0 = invalid; ``meta["invalid_depth"]`` counts them (so nothing is dropped silently).
+become 0 = invalid; ``meta["invalid_depth"]`` counts them (so nothing is dropped silently). A map whose median
+valid depth is outside 0.05..100 m is in another unit (e.g. millimetres) and is an error naming the file.
 """
 from __future__ import annotations
 
@@ -22,12 +24,14 @@ import numpy as np
 import torch
 
 from .exr import read_exr
-from .readers import read_raw, rgb_to_tensor
-from .validate import DataValidationError, check_size, invalid, read_text
+from .readers import array_to_tensor, read_rgb_array
+from .splits import check_relative_path
+from .validate import DataValidationError, check_depth_units, check_size, invalid, read_text
 
 
 def read_pair_list(path: str | Path) -> list[tuple[str, str]]:
-    """``(rgb, depth)`` relative paths of a split list (two fields per line; blank lines skipped)."""
+    """``(rgb, depth)`` relative paths of a split list (two fields per line; blank lines skipped). A path that is
+    absolute or climbs out of the dataset root with ``..`` is an error naming the file and line."""
     path = Path(path)
     out = []
     for i, line in enumerate(read_text(path, "split list").splitlines(), 1):
@@ -36,7 +40,7 @@ def read_pair_list(path: str | Path) -> list[tuple[str, str]]:
             continue
         if len(parts) != 2:
             raise DataValidationError(f"{path}:{i}: split line is {line!r}, expected '<rgb path> <depth path>'")
-        out.append((parts[0], parts[1]))
+        out.append((check_relative_path(parts[0], f"{path}:{i}"), check_relative_path(parts[1], f"{path}:{i}")))
     if not out:
         raise DataValidationError(f"{path}: split list is empty, expected '<rgb path> <depth path>' lines")
     return out
@@ -45,7 +49,8 @@ def read_pair_list(path: str | Path) -> list[tuple[str, str]]:
 def read_depth_exr(path: str | Path, max_depth: float | None, channel: str | None = None
                    ) -> tuple[np.ndarray, int]:
     """``(H, W)`` float32 metres with 0 where invalid (non-finite, <= 0 or above ``max_depth``) and the count of
-    pixels made invalid that way."""
+    pixels made invalid that way. A map whose median valid depth is not a plausible indoor depth in metres
+    (:func:`~omnidl.data.validate.check_depth_units`, e.g. millimetres) is an error naming the file."""
     planes = read_exr(path)
     if channel is None:
         if len(planes) != 1:
@@ -57,6 +62,7 @@ def read_depth_exr(path: str | Path, max_depth: float | None, channel: str | Non
     if channel not in planes:
         raise invalid(path, "EXR channel", repr(channel), f"one of {sorted(planes)}")
     d = planes[channel].astype(np.float32)
+    check_depth_units(d, path, f"EXR depth channel {channel!r}")
     bad = ~np.isfinite(d) | (d < 0)
     if max_depth is not None:
         bad |= d > max_depth
@@ -100,10 +106,10 @@ class Pano3D(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> dict[str, Any]:
         rgb_p, dep_p = self.pairs[i]
         size = (self.width, self.height) if self.width and self.height else None
-        raw = read_raw(rgb_p, cv2.IMREAD_COLOR)
+        rgb = read_rgb_array(rgb_p)
         depth, n_bad = read_depth_exr(dep_p, self.max_depth, self.channel)
-        check_size(depth, (raw.shape[1], raw.shape[0]), dep_p, "EXR depth")
-        img = rgb_to_tensor(raw, size)
+        check_size(depth, (rgb.shape[1], rgb.shape[0]), dep_p, "EXR depth")
+        img = array_to_tensor(rgb, size)
         if size is not None and (depth.shape[1], depth.shape[0]) != size:
             depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
         return {"image": img, "depth": torch.from_numpy(np.ascontiguousarray(depth))[None],

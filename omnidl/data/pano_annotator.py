@@ -21,7 +21,9 @@ Folder (LGT-Net's ``mp3d`` layout; the release's ``<scene>_<pano>_label.json`` n
     <root>/label/<scene>_<pano>.json      (or <scene>_<pano>_label.json)
     <root>/split/{train,val,test}.txt     (or <root>/mp3d_{train,val,test}.txt; lines "<scene> <pano>")
 
-Samples: :func:`omnidl.data.layout_sample.layout_sample` (``camera_height`` from the file).
+Samples: :func:`omnidl.data.layout_sample.layout_sample` (``camera_height`` from the file). Units are metres:
+a ``cameraHeight`` outside 0.3..5 m (centimetres), a room over 100 m across or a ceiling over 100 m are
+errors naming the file (:func:`~omnidl.data.layout_sample.check_room_units`).
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .layout_sample import MAX_WALLS, check_room, layout_sample, read_panorama
+from .layout_sample import MAX_WALLS, check_room, check_room_units, layout_sample, read_panorama
 from .splits import find_split_file, read_split_list
 from .validate import UnreadableFileError, invalid, read_text
 
@@ -120,6 +122,7 @@ def read_pano_annotator_json(path: str | Path) -> PanoAnnotatorLabel:
     pts = np.asarray(xyz, dtype=np.float64)[order] if order else np.zeros((0, 3))
     polygon = np.stack([pts[:, 0], -pts[:, 2]], -1) if len(pts) else np.zeros((0, 2))
     check_room(polygon, path, "layoutPoints (top view)")
+    check_room_units(polygon, cam_h, ceil_h, path, "cameraHeight / layoutPoints")
     return PanoAnnotatorLabel(polygon, cam_h, ceil_h)
 
 

@@ -25,9 +25,23 @@ def check_split_name(split: str, what: str) -> str:
     return split
 
 
+def check_relative_path(rel: str, where: str | Path) -> str:
+    """A path read from a dataset file (a split list, a JSON field) that must stay inside the dataset root: not
+    absolute (``/x``, ``~/x``, ``C:\\x``) and without a ``..`` part (checked on the text, so links inside the
+    dataset still work). Anything else is a :class:`~omnidl.data.validate.DataValidationError` naming ``where``
+    (the file and line or field)."""
+    text = str(rel)
+    parts = text.replace("\\", "/").split("/")
+    if text.startswith(("/", "\\", "~")) or (len(text) > 1 and text[1] == ":") or ".." in parts:
+        raise DataValidationError(f"{where}: path {text!r} leaves the dataset root; expected a path relative to "
+                                  "the dataset root, without '..'")
+    return text
+
+
 def read_split_list(path: str | Path) -> list[str]:
     """Sample names of a split file (``<scene> <pano>`` or ``<name>`` per line; blank lines and ``#`` comments
-    skipped), in file order. Duplicates and lines with more than two fields are errors naming the line."""
+    skipped), in file order. Duplicates, lines with more than two fields and names that leave the dataset root
+    (:func:`check_relative_path`) are errors naming the line."""
     path = Path(path)
     names: list[str] = []
     seen: dict[str, int] = {}
@@ -39,7 +53,7 @@ def read_split_list(path: str | Path) -> list[str]:
         if len(parts) > 2:
             raise DataValidationError(f"{path}:{i}: split line is {line!r}, expected '<scene_id> <pano_id>' or "
                                       "'<name>'")
-        name = "_".join(parts)
+        name = check_relative_path("_".join(parts), f"{path}:{i}")
         if name in seen:
             raise DataValidationError(f"{path}:{i}: {name!r} is listed twice (first on line {seen[name]}); "
                                       "expected each panorama once")

@@ -4,7 +4,7 @@ Folder (Structured3D's ``data_organization.md``)::
 
     <root>/scene_<5 digits>/2D_rendering/<room_id>/panorama/<full|simple|empty>/rgb_<raw|cold|warm>light.png
     .../panorama/<full|simple|empty>/depth.png       uint16 millimetres, 0 = no reading
-    .../panorama/<full|simple|empty>/semantic.png    uint8 NYUv2 40-label ids (0 = unlabelled)
+    .../panorama/<full|simple|empty>/semantic.png    uint8 NYUv2 40-label ids (0 = unlabelled), grey or palette
     .../panorama/layout.txt                          corner pixels, HorizonNet ``label_cor`` format
 
 Depth: a panorama has no optical axis, so the stored value is read as the distance along each pixel's ray
@@ -12,7 +12,8 @@ Depth: a panorama has no optical axis, so the stored value is read as the distan
 by name (wall, floor, ceiling, chair, sofa, table/desk, door, window, bookshelf/shelves -> bookcase,
 whiteboard -> board); every other labelled id is ``clutter``, 0 stays unknown. Layout (``layout=True``):
 the boundary / corner targets of :class:`~omnidl.data.horizonnet_format.HorizonNetFolderDataset` from
-``layout.txt`` with HorizonNet's assumed 1.6 m camera height (only the room's shape is used).
+``layout.txt`` with HorizonNet's assumed 1.6 m camera height (only the room's shape is used), checked as every
+layout adapter checks it (corners in wall order, none twice, ceiling and floor of a corner in one column).
 
 Splits: scenes 0-2999 train, 3000-3249 val, 3250-3499 test (the split of the Structured3D paper, used by
 HorizonNet's and LGT-Net's preparation scripts).
@@ -22,18 +23,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from omnidl.classes import CLASS_ID
-from .horizonnet_format import corners_from_label_cor, read_label_cor
+from .horizonnet_format import read_label_cor, room_from_label_cor
 from .layout_sample import MAX_WALLS
 from .layout_targets import boundary_targets, corner_heat
-from .paired import PairedPanoramas, PanoramaFiles, check_size, to_tensor_labels
-from .readers import read_depth_png, read_raw, resize_labels
+from .paired import PairedPanoramas, PanoramaFiles, to_tensor_labels
+from .readers import read_depth_png, read_label_map, resize_labels
 from .splits import check_split_name
-from .validate import check_label_cor, invalid
+from .validate import invalid
 
 SPLIT_SCENES = {"train": (0, 3000), "val": (3000, 3250), "test": (3250, 3500)}
 VARIANTS = ("full", "simple", "empty")
@@ -55,10 +55,9 @@ def nyu40_lut() -> np.ndarray:
 
 
 def decode_semantic(path: Path, expect_wh, out_wh) -> torch.Tensor:
-    raw = read_raw(path, cv2.IMREAD_UNCHANGED)
-    if raw.ndim != 2 or raw.dtype != np.uint8:
-        raise invalid(path, "semantic", f"shape {raw.shape} {raw.dtype}", "a single-channel 8-bit PNG of NYUv2-40 ids")
-    check_size(raw, expect_wh, path, "semantic map")
+    """``semantic.png`` -> omnidl class ids: NYUv2-40 ids stored as 8-bit grey values or as the indices of a
+    palette PNG (the palette index is the id, as ``numpy.asarray(PIL.Image.open(f))`` reads it)."""
+    raw = read_label_map(path, "semantic", dtypes=(np.uint8,), size=expect_wh)
     bad = raw > 40
     if bad.any():
         raise invalid(path, "semantic", f"label id(s) {np.unique(raw[bad])[:5].tolist()}", "NYUv2-40 ids 0..40")
@@ -124,15 +123,14 @@ class Structured3D(PairedPanoramas):
     def __getitem__(self, index: int) -> dict[str, Any]:
         sample = super().__getitem__(index)
         if self.layout:
-            sample.update(self._layout(index, sample["image"].shape[-1], sample["image"].shape[-2]))
+            w0, h0 = sample["meta"]["stored_size"]
+            sample.update(self._layout(index, sample["image"].shape[-1], sample["image"].shape[-2], w0, h0))
         return sample
 
-    def _layout(self, index: int, W: int, H: int) -> dict[str, Any]:
+    def _layout(self, index: int, W: int, H: int, w0: int, h0: int) -> dict[str, Any]:
         path = self.layout_files[index]
-        h0, w0 = read_raw(self.samples[index].image, cv2.IMREAD_COLOR).shape[:2]
-        cor = check_label_cor(read_label_cor(path), path, w0, h0)
-        cor = cor * np.array([W / w0, H / h0])
-        cc = corners_from_label_cor(cor, W, H)
+        cor = read_label_cor(path, w0, h0) * np.array([W / w0, H / h0])
+        cc = room_from_label_cor(cor, path, W, H)
         from ..cameras import Equirectangular
         rows, valid = boundary_targets(cc, Equirectangular(width=W, height=H))
         if len(cc) > MAX_WALLS:

@@ -8,7 +8,8 @@ turns them into a flagged skip during training; called directly they are plain e
 * :class:`DataValidationError` (also a ``ValueError``): the file reads but its content is wrong (size,
   channels, bit depth, shape, NaN/inf, value out of range).
 
-Readers: :func:`read_raw` (bytes -> OpenCV array), :func:`read_image` (channels / bit depth / size checked),
+Readers: :func:`read_bytes`, :func:`read_raw` (bytes -> OpenCV array, EXIF orientation applied),
+:func:`read_image` (channels / bit depth / size checked),
 :func:`load_npy` (shape, dtype, finite), :func:`read_text` (UTF-8 text). Checks on arrays already in memory:
 :func:`check_shape`, :func:`check_size`, :func:`check_finite`, :func:`check_range`, :func:`check_class_ids`,
 :func:`check_label_cor` (HorizonNet ``label_cor`` corners). Every function takes ``path`` (the file the array
@@ -16,6 +17,7 @@ came from) and ``field`` (what it is, e.g. ``"depth_coded"``) only to write the 
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Sequence
 
@@ -24,9 +26,9 @@ import numpy as np
 
 from .robust import CorruptSampleError
 
-__all__ = ["DataValidationError", "UnreadableFileError", "invalid", "read_raw", "read_image", "load_npy",
-           "read_text", "check_shape", "check_size", "check_finite", "check_range", "check_class_ids",
-           "check_label_cor"]
+__all__ = ["DataValidationError", "UnreadableFileError", "invalid", "read_bytes", "decode_raw", "read_raw",
+           "read_image", "load_npy", "read_text", "check_shape", "check_size", "check_finite", "check_range", "check_class_ids",
+           "check_label_cor", "check_depth_units", "DEPTH_MEDIAN_RANGE"]
 
 _PNG_END = b"IEND\xaeB`\x82"
 
@@ -53,23 +55,67 @@ def _describe(arr: np.ndarray) -> str:
 # readers
 # ------------------------------------------------------------------------------------------------
 
-def read_raw(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED, field: str = "image") -> np.ndarray:
-    """``cv2.imdecode`` of a file -> the array as stored (BGR[A] order, uint8/uint16/float32).
+def _max_pixels() -> int:
+    """OpenCV's decode limit: the environment variable ``OPENCV_IO_MAX_IMAGE_PIXELS`` (read by OpenCV), else 2^30."""
+    try:
+        return int(os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", 1 << 30))
+    except ValueError:
+        return 1 << 30
 
-    Raises :class:`UnreadableFileError` for a missing, empty, undecodable or truncated (PNG without its
-    ``IEND`` chunk) file."""
+
+def read_bytes(path: str | Path, field: str = "file") -> bytes:
+    """Every byte of a file, read by Python (so a name of any bytes works, never passed to OpenCV).
+
+    A missing, unreadable or empty file is an :class:`UnreadableFileError` naming it."""
     path = Path(path)
     if not path.is_file():
         raise UnreadableFileError(f"missing file {path} ({field})")
-    if path.stat().st_size == 0:
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise UnreadableFileError(f"cannot read {path} ({field}: {e.strerror or e})") from e
+    if not data:
         raise UnreadableFileError(f"empty file {path} ({field}: 0 bytes)")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, flags)
+    return data
+
+
+def decode_raw(data: bytes, path: str | Path, flags: int = cv2.IMREAD_UNCHANGED, field: str = "image") -> np.ndarray:
+    """The reading policy of every image reader (``docs/data.md``): ``cv2.imdecode`` of a file's bytes, then the
+    EXIF orientation applied (:mod:`omnidl.data.exif`, as PIL's ``ImageOps.exif_transpose``), whatever ``flags``.
+
+    An undecodable or truncated file (a PNG without ``IEND``, a JPEG without its end marker) and an image over
+    OpenCV's pixel limit (``CV_IO_MAX_IMAGE_PIXELS``) are :class:`UnreadableFileError` naming ``path``, so
+    training skips the sample."""
+    from .exif import DECODER_APPLIES, apply_orientation, exif_orientation, image_format, jpeg_complete
+    fmt = image_format(data)
+    if flags != cv2.IMREAD_UNCHANGED:
+        flags |= cv2.IMREAD_IGNORE_ORIENTATION                      # the orientation is applied below, once
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error as e:
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        if "MAX_IMAGE_PIXELS" in str(e) or "validateInputImageSize" in str(e):
+            raise UnreadableFileError(f"image {path} ({field}) has more pixels than OpenCV decodes "
+                                      f"(CV_IO_MAX_IMAGE_PIXELS = {_max_pixels()}); downscale it, or set the "
+                                      "environment variable OPENCV_IO_MAX_IMAGE_PIXELS before starting Python") from e
+        raise UnreadableFileError(f"cannot decode image {path} ({field}: OpenCV: {msg})") from e
     if img is None:
         raise UnreadableFileError(f"cannot decode image {path} ({field}: truncated or not an image?)")
-    if path.suffix.lower() == ".png" and not data[-12:].tobytes().endswith(_PNG_END):
+    if fmt == "png" and not data[-12:].endswith(_PNG_END):
         raise UnreadableFileError(f"truncated PNG {path} ({field}: no IEND chunk)")
+    if fmt == "jpeg" and not jpeg_complete(data):
+        raise UnreadableFileError(f"truncated JPEG {path} ({field}: no end-of-image marker after the scan)")
+    if fmt not in DECODER_APPLIES:
+        img = apply_orientation(img, exif_orientation(data))
     return img
+
+
+def read_raw(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED, field: str = "image") -> np.ndarray:
+    """An image file -> the array as stored (BGR[A] order, uint8/uint16/float32), turned upright by its EXIF
+    orientation: :func:`read_bytes` + :func:`decode_raw` (the one reading policy, ``docs/data.md``).
+
+    Raises :class:`UnreadableFileError` for a missing, empty, undecodable, truncated or too large file."""
+    return decode_raw(read_bytes(path, field), Path(path), flags, field)
 
 
 def read_image(path: str | Path, field: str = "image", channels: int | None = 3,
@@ -208,7 +254,9 @@ def check_label_cor(cor: np.ndarray, path: str | Path, width: int, height: int, 
     ``-0.5 <= y < height``: the format puts the centre of pixel ``j`` at ``j`` (the image spans ``[-0.5, W - 0.5]``,
     HorizonNet's ``u = (x + 0.5) / W``), and annotation tools that write ``[0, W)`` are accepted too; a column within
     half a pixel past the seam is the same on the circle (the targets wrap it). Anything further out is an error,
-    never wrapped. Each ceiling point above its floor point; at least ``min_corners`` corners in distinct columns."""
+    never wrapped. Each ceiling point above its floor point, in its floor point's column (within ``W / 100``, the
+    tolerance of HorizonNet's own loader: a vertical wall edge is one image column); no corner listed twice; at
+    least ``min_corners`` corners in distinct columns."""
     cor = np.asarray(cor, float).reshape(-1, 2)
     if len(cor) == 0:
         raise invalid(path, field, "empty (0 points)", f"ceiling/floor pairs of at least {min_corners} corners")
@@ -223,8 +271,42 @@ def check_label_cor(cor: np.ndarray, path: str | Path, width: int, height: int, 
         k = int(swapped[0])
         raise invalid(path, field, f"corner {k} with ceiling y={pairs[k, 0, 1]:g} and floor y={pairs[k, 1, 1]:g}",
                       "each ceiling point (odd lines) above its floor point (even lines)")
+    dx = np.abs(pairs[:, 0, 0] - pairs[:, 1, 0])
+    dx = np.minimum(dx, width - dx)                                  # columns are on the circle
+    off = np.flatnonzero(dx > width / 100)
+    if len(off):
+        k = int(off[0])
+        raise invalid(path, field, f"corner {k} with ceiling x={pairs[k, 0, 0]:g} and floor x={pairs[k, 1, 0]:g}",
+                      f"the ceiling and floor point of a corner in one column (within W/100 = {width / 100:g} px)")
     ncols = len(np.unique(np.round(pairs[:, 1, 0], 3)))
     if len(pairs) < min_corners or ncols < min_corners:
         raise invalid(path, field, f"{len(pairs)} corner(s) in {ncols} distinct column(s)",
                       f"at least {min_corners} corners in distinct columns (a room)")
+    flat = pairs.reshape(len(pairs), 4)
+    close = np.abs(flat[:, None] - flat[None]).max(-1) <= 0.5
+    close[np.arange(len(pairs)), np.arange(len(pairs))] = False
+    if close.any():
+        j, k = (int(i) for i in np.argwhere(close)[0])
+        raise invalid(path, field, f"corner {max(j, k)} at x={pairs[k, 1, 0]:g} repeating corner {min(j, k)}",
+                      "each corner once (a duplicated corner)")
     return cor
+
+
+#: plausible median of the valid depths of an indoor panorama, metres (outside: a depth in the wrong unit)
+DEPTH_MEDIAN_RANGE = (0.05, 100.0)
+
+
+def check_depth_units(depth_m: np.ndarray, path: str | Path, field: str = "depth",
+                      plausible: tuple[float, float] = DEPTH_MEDIAN_RANGE) -> np.ndarray:
+    """The median of the valid (finite, > 0) depths, in metres, must be in ``plausible``: a depth map in
+    millimetres read as metres has a median of thousands, one in metres read with a millimetre scale a
+    median of millimetres. An all-invalid map passes (nothing to judge)."""
+    d = np.asarray(depth_m, dtype=np.float64)
+    v = d[np.isfinite(d) & (d > 0)]
+    if v.size:
+        med = float(np.median(v))
+        if not plausible[0] <= med <= plausible[1]:
+            raise invalid(path, field, f"of median {med:g} m over {v.size} valid pixel(s)",
+                          f"an indoor depth in metres, median in [{plausible[0]:g}, {plausible[1]:g}] m (a depth in "
+                          "the wrong unit, e.g. millimetres read as metres?)")
+    return depth_m

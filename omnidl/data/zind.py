@@ -22,7 +22,10 @@ longitude is ``atan2(x_cam, z_cam)``, so ``x_cam = -x``, ``z_cam = y`` and the l
 ``meta["metric"]`` says which).
 
 Panoramas are left out, with one warning naming them, when they lack the chosen layout, are taken outside
-it (``is_inside = false``), or their layout is not a simple polygon around the camera; optional filters keep
+it (``is_inside = false``), their layout is not a simple polygon around the camera (a corner listed twice
+included), or its units are implausible in metres (camera 0.3..5 m above the floor, room at most 100 m across:
+a wrong ``scale_meters_per_coordinate`` or vertex unit); an ``image_path`` that leaves the house folder (absolute,
+``..``) is an error. Optional filters keep
 primary panoramas, flat ceilings or the "simple" room shapes only.
 """
 from __future__ import annotations
@@ -37,8 +40,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .layout_sample import MAX_WALLS, check_room, layout_sample, read_panorama
-from .splits import read_zind_partition
+from .layout_sample import MAX_WALLS, check_room, check_room_units, layout_sample, read_panorama
+from .splits import check_relative_path, read_zind_partition
 from .validate import DataValidationError, UnreadableFileError, invalid, read_text
 
 LAYOUTS = ("visible", "complete", "raw")
@@ -119,6 +122,7 @@ def parse_pano(path: Path, house: str, fid: str, key: str, pano: dict, where: st
     img = pano["image_path"]
     if not isinstance(img, str) or not img:
         raise invalid(path, f"{where}.image_path", repr(img), "a relative image path")
+    check_relative_path(img, f"{path}: {where}.image_path")
     return poly, ch * units, (ceil - ch) * units, metric, img
 
 
@@ -191,6 +195,7 @@ class ZInD(torch.utils.data.Dataset):
                                                          camera_height, fs)
                 try:
                     check_room(poly, path, f"{where}.layout_{layout}")
+                    check_room_units(poly, ch, ceil, path, where)
                 except DataValidationError as e:
                     skipped.append(f"{name} ({e})")
                     continue

@@ -222,6 +222,21 @@ STANFORD_ROWS = [
 ]
 
 
+def _ok_rgb_exif(root):
+    p = _rgb(root)
+    up = cv2.imread(str(p))[..., ::-1].copy()
+    p.write_bytes(_exif_pil(np.ascontiguousarray(up[::-1, ::-1]), 3))
+    s = _stanford(root)[0]
+    assert torch.allclose(s["image"], torch.from_numpy(up).permute(2, 0, 1).float() / 255)
+
+
+STANFORD_ROWS += [
+    row("x-depth-in-metres-not-512ths", lambda r: cv2.imwrite(str(_depth(r)), np.full((H, W), 3, np.uint16)), "item",
+        verdict=ERROR, match=r"_depth\.png: depth map is of median 0\.00585938 m .*wrong unit"),
+    row("x-rgb-exif-upside-down", _ok_rgb_exif, None, verdict=OK),
+]
+
+
 @pytest.mark.parametrize("mutate, call, verdict, match", STANFORD_ROWS)
 def test_stanford2d3ds(stanford_base, tmp_path, mutate, call, verdict, match):
     root = _copy(stanford_base, tmp_path / "s")
@@ -322,6 +337,24 @@ MATTERPORT_ROWS = [
 ]
 
 
+def _ok_mp_palette(root):
+    from PIL import Image
+    p = root / "scA" / "pano00_semantic.png"
+    ids = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    im = Image.fromarray(ids).convert("P")
+    im.putpalette([(37 * i) % 256 for i in range(768)])
+    im.putdata(ids.reshape(-1).tolist())
+    im.save(p)
+    assert torch.equal(_mp(root)[0]["semantic"], torch.from_numpy(ids.astype(np.int64)))
+
+
+MATTERPORT_ROWS += [
+    row("x-semantic-palette-indices", _ok_mp_palette, None, verdict=OK),
+    row("x-scenes-file-escapes", lambda r: (r / "scenes_train.txt").write_text("scA\n../outside\n"), "init",
+        verdict=ERROR, match=r"scenes_train\.txt:2: path '\.\./outside' leaves the dataset root"),
+]
+
+
 @pytest.mark.parametrize("mutate, call, verdict, match", MATTERPORT_ROWS)
 def test_matterport3d(matterport_base, tmp_path, mutate, call, verdict, match):
     root = _copy(matterport_base, tmp_path / "m")
@@ -390,11 +423,10 @@ def _ok_below_horizon(root):
 
 
 def _ok_edges(root):
-    rows = GOOD_COR.copy()
+    rows = GOOD_COR.copy()                  # a room (corners in wall order around the camera) touching the edges
     rows[0, 0] = rows[1, 0] = -0.5          # a corner on the seam: the image spans [-0.5, W - 0.5]
-    rows[6, 0] = rows[7, 0] = W - 0.5
-    rows[2, 0] = rows[3, 0] = W - 0.01      # [0, W) tools: 0.49 px past the seam = column -0.01 on the circle
-    rows[2, 1], rows[3, 1] = 0.0, H - 0.01  # y of [0, H) tools (a tall room)
+    rows[6, 0] = rows[7, 0] = W - 0.01      # [0, W) tools: 0.49 px past the seam = column -0.01 on the circle
+    rows[2, 1] = 0.0                        # y of [0, H) tools (a tall room); the floor stays off the nadir
     _cor(root, rows)
     s = _hn(root)[0]
     heat = s["corner_heat"][0]
@@ -451,6 +483,55 @@ HORIZONNET_ROWS = [
     row("x-img-rgba", lambda r: _ok_hn(r, lambda a: np.concatenate([a, a[..., :1]], -1)), verdict=OK),
     row("x-corners-on-image-edges", _ok_edges, verdict=OK),
     row("x-resized-labels-scaled", _ok_resized_labels, verdict=OK),
+]
+
+
+def _exif_pil(arr_rgb: np.ndarray, orientation: int) -> bytes:
+    import io
+    from PIL import Image
+    ex = Image.Exif()
+    ex[0x0112] = orientation
+    b = io.BytesIO()
+    Image.fromarray(arr_rgb).save(b, "PNG", exif=ex)
+    return b.getvalue()
+
+
+def _ok_hn_exif(root):
+    up = np.full((H, W, 3), 90, np.uint8)
+    up[: H // 4] = 250                                   # bright ceiling rows on top when upright
+    (root / "img" / "a.png").write_bytes(_exif_pil(np.ascontiguousarray(up[::-1, ::-1]), 3))
+    s = _hn(root)[0]
+    assert torch.allclose(s["image"], torch.from_numpy(up).permute(2, 0, 1).float() / 255)
+
+
+def _huge_png(path: Path) -> None:
+    import struct
+    import zlib
+
+    def chunk(t, d):
+        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 60000, 30000, 8, 2, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + chunk(b"IEND", b""))
+
+
+def _split(rows):
+    rows = np.array(rows, float)
+    rows[2, 0] += 3.0                                    # corner 1's ceiling 3 columns off its floor (W/100 = 0.64)
+    return rows
+
+
+HORIZONNET_ROWS += [
+    row("x-corners-out-of-order", lambda r: _cor(r, GOOD_COR[[0, 1, 4, 5, 2, 3, 6, 7]]), verdict=ERROR,
+        match=r"a\.txt: label_cor \(top view of the floor corners\) is a self-intersecting polygon"),
+    row("x-corner-duplicated", lambda r: _cor(r, np.concatenate([GOOD_COR, GOOD_COR[2:4]])), verdict=ERROR,
+        match=r"a\.txt: label_cor is corner 4 at x=20 repeating corner 1, expected each corner once"),
+    row("x-ceiling-floor-columns-differ", lambda r: _cor(r, _split(GOOD_COR)), verdict=ERROR,
+        match=r"a\.txt: label_cor is corner 1 with ceiling x=23 and floor x=20, expected .* in one column"),
+    row("x-room-over-100-m", lambda r: _cor(r, np.where([[0, 0], [0, 1]] * 4, 15.7, GOOD_COR)), verdict=ERROR,
+        match=r"a\.txt: label_cor room (polygon|height) is [\d.]+ m.*expected (a room )?at most 100 m"),
+    row("x-img-exif-upside-down", _ok_hn_exif, verdict=OK),
+    row("x-img-over-pixel-limit-skipped", lambda r: _huge_png(r / "img/a.png"), verdict=SKIP,
+        match=r"skipping sample 0: image .*img/a\.png \(image\) has more pixels than OpenCV decodes"),
 ]
 
 
@@ -596,6 +677,34 @@ NONCENTRAL_ROWS = [
 ]
 
 
+def _nc_cor(fn):
+    def mutate(root):
+        p = _f(root, "DataPython", "label_cor", "N.txt")
+        _write_cor(p, fn(np.loadtxt(p).reshape(-1, 2)))
+    return mutate
+
+
+def _nc_split(rows):
+    rows[0, 0] += 4.0
+    return rows
+
+
+NONCENTRAL_ROWS += [
+    row("x-label-cor-more-corners-than-3d-gt",
+        _nc_cor(lambda r: np.array([[x, y] for x in np.arange(1.0, 63.0, 1.5) for y in (10.0, 22.0)])), verdict=ERROR,
+        match=r"label_cor/SYN00000_R10000\.txt: label_cor is 42 corners, expected at most the \d+ corners of "
+              r"SYN00000_R10000\.npy \(3D_gt"),
+    row("x-label-cor-columns-differ", _nc_cor(_nc_split), verdict=ERROR,
+        match=r"SYN00000_R10000\.txt: label_cor is corner 0 with ceiling x=.*in one column"),
+    row("x-label-cor-duplicated", _nc_cor(lambda r: np.concatenate([r, r[:2]])), verdict=ERROR,
+        match=r"SYN00000_R10000\.txt: label_cor is corner \d+ at x=.* repeating corner 0"),
+    row("x-3d-gt-in-millimetres", lambda r: _npy(r, "3D_gt", np.load(_f(r, "DataPython", "3D_gt", "N.npy")) * 1000),
+        verdict=ERROR, match=r"3D_gt/SYN00000_R10000\.npy: room (camera )?height is [\d.]+ m.*expected"),
+    row("x-split-name-escapes", "escape", verdict=ERROR,
+        match=r"train\.txt:1: path '\.\./\.\./etc/x' leaves the dataset root"),
+]
+
+
 @pytest.mark.parametrize("mutate, verdict, match", NONCENTRAL_ROWS)
 def test_noncentral_indoor(noncentral_base, tmp_path, mutate, verdict, match):
     root = _copy(noncentral_base, tmp_path / "n")
@@ -607,6 +716,11 @@ def test_noncentral_indoor(noncentral_base, tmp_path, mutate, verdict, match):
     if mutate == "empty":
         _f(root, "img", "N.png").unlink()
         expect(lambda: _nc(root), verdict, match, error=FileNotFoundError)
+        return
+    if mutate == "escape":
+        (root / "split").mkdir()
+        (root / "split" / "train.txt").write_text("../../etc/x\n")
+        expect(lambda: _nc(root, split="train"), verdict, match, error=CorruptSampleError)
         return
     if mutate == "no-label-folder":
         shutil.rmtree(root / "DataPython")

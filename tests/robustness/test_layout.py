@@ -141,3 +141,56 @@ def test_layout(make, check, verdict, match):
     out = expect(make, verdict, match)
     if verdict == OK:
         check(out)
+
+
+# ------------------------------------------------------------------------------------ room checks of the adapters
+BOX = np.array([[-1.5, -2.0], [2.0, -2.0], [2.0, 1.5], [-1.5, 1.5]])
+
+
+def _room(polygon, camera_height=1.6, ceiling_height=1.2):
+    def make():
+        from omnidl.data.layout_sample import check_room, check_room_units
+        p = check_room(np.asarray(polygon, float), "room.json", "layout")
+        check_room_units(p, camera_height, ceiling_height, "room.json")
+        return p
+    return make
+
+
+def _setting(cls, **kw):
+    def make():
+        from omnidl.data import horizonnet_format, noncentral_indoor
+        ds = {"hn": horizonnet_format.HorizonNetFolderDataset, "nc": noncentral_indoor.NonCentralIndoorDataset}[cls]
+        return ds("/nonexistent-root", **kw)
+    return make
+
+
+ROOM_ROWS = [
+    row("room-ok", _room(BOX), lambda p: np.array_equal(p, BOX), verdict=OK),
+    row("room-duplicate-consecutive", _room(np.insert(BOX, 2, BOX[1], 0)), None, verdict=ERROR,
+        match=r"room\.json: layout is corner 2 = \[2\.0, -2\.0\] repeating corner 1 \(a duplicated point\)"),
+    row("room-duplicate-apart", _room(np.insert(BOX, 4, BOX[1], 0)), None, verdict=ERROR,
+        match=r"corner 4 = \[2\.0, -2\.0\] repeating corner 1 \(a duplicated point\), expected each corner once"),
+    row("room-bow-tie", _room(BOX[[0, 2, 1, 3]]), None, verdict=ERROR,
+        match=r"room\.json: layout is a self-intersecting polygon \(4 corners\)"),
+    row("room-camera-height-cm", _room(BOX, camera_height=160.0), None, verdict=ERROR,
+        match=r"room\.json: room camera height is 160 m, expected 0\.3\.\.5 m above the floor"),
+    row("room-camera-height-too-low", _room(BOX, camera_height=0.1), None, verdict=ERROR,
+        match=r"room camera height is 0\.1 m, expected 0\.3\.\.5 m"),
+    row("room-ceiling-cm", _room(BOX, ceiling_height=120.0), None, verdict=ERROR,
+        match=r"room height is 121\.6 m \(floor to ceiling\), expected at most 100 m"),
+    row("room-vertices-x1e4", _room(BOX * 1e4), None, verdict=ERROR,
+        match=r"room polygon is 35000 m across, expected a room at most 100 m"),
+    row("room-height-nan", _room(BOX, ceiling_height=float("nan")), None, verdict=ERROR,
+        match=r"room ceiling height above the camera is nan, expected a finite positive height"),
+    row("horizonnet-camera-height-cm", _setting("hn", camera_height=160.0), None, verdict=ERROR,
+        match=r"HorizonNetFolderDataset: camera_height=160\.0; expected 0\.3\.\.5 metres"),
+    row("noncentral-camera-height-nan", _setting("nc", camera_height=float("nan")), None, verdict=ERROR,
+        match=r"NonCentralIndoorDataset: camera_height=nan; expected 0\.3\.\.5 metres"),
+]
+
+
+@pytest.mark.parametrize("make,check,verdict,match", ROOM_ROWS)
+def test_room_checks(make, check, verdict, match):
+    out = expect(make, verdict, match)
+    if verdict == OK:
+        assert check(out)

@@ -221,6 +221,9 @@ def _check(verts: np.ndarray, h_c: float, h_f: float, opt: LayoutOptions) -> str
         return "fewer than 3 finite corners"
     if np.max(np.linalg.norm(verts, axis=1)) > opt.max_range:
         return f"a corner lies farther than {opt.max_range} m (ill-conditioned solve)"
+    step = np.linalg.norm(verts - np.roll(verts, 1, axis=0), axis=1)
+    if np.any(step <= 1e-9 * max(1.0, float(np.abs(verts).max()))):
+        return "the recovered polygon has two coincident corners"
     if not is_simple(verts, eps=0.0):
         return "the recovered polygon self-intersects"
     if not points_in_polygon(np.zeros((1, 2)), verts)[0]:
