@@ -12,6 +12,11 @@ Units: omnidl's metrics are fractions (mIoU 0.42, not 42; layout IoU and CEN too
 so. Only the printed thesis-style table (``results.md`` and the terminal) shows mIoU, mAcc, the layout IoUs and
 CEN in percent, in columns labelled (%). A fraction metric outside [0, 1] (a job that wrote percent) is reported
 on stderr. Per-group keys such as ``iou_3d@4`` (a layout protocol's corner-count groups) have their base key's unit.
+
+Names in ``results.md`` (job names from the configs, metric keys) are Markdown-escaped: ``|`` cannot split a cell,
+a line break cannot end a row, and ``<``, ``>``, ``&`` are HTML entities, so a Markdown renderer shows them as text
+and never as markup. Nothing is overwritten: existing ``results.md``/``results.csv``/``rotation.png`` are replaced
+only with ``--overwrite`` (:mod:`omnidl.utils.outputs`; the check runs before anything is written).
 """
 from __future__ import annotations
 
@@ -26,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from omnidl.utils.io import atomic_write, atomic_write_text
+from omnidl.utils.outputs import guard_outputs
 
 PREFERRED = ["mre", "mae", "rmse", "rmse_log", "rmselog", "delta1", "delta2", "delta3", "miou", "macc",
              "ce", "cen", "iou_3d", "iou_2d", "iou3d", "iou2d"]
@@ -179,6 +185,14 @@ def table(records: list[dict[str, Any]], columns: list[str] | None = None,
     return header, rows
 
 
+_MD_ESCAPES = {"&": "&amp;", "<": "&lt;", ">": "&gt;", "|": "\\|", "\\": "\\\\", "\n": " ", "\r": " "}
+
+
+def markdown_cell(text: str) -> str:
+    """``text`` as the content of one Markdown table cell shown literally (see the module docstring)."""
+    return re.sub(r"[&<>|\\\n\r]", lambda m: _MD_ESCAPES[m.group(0)], str(text))
+
+
 def to_markdown(header: list[str], rows: list[list[str]], percent: bool = True) -> str:
     """The printed table; with ``percent`` (rows made by ``table(..., percent=True)``) the :data:`PERCENT` columns
     say (%)."""
@@ -188,8 +202,8 @@ def to_markdown(header: list[str], rows: list[list[str]], percent: bool = True) 
         return PRETTY.get(s, h) + unit + (" ↓" if s in LOWER_IS_BETTER else " ↑" if s in PREFERRED else "")
     arrows = [label(h) for h in header]
     arrows[0] = header[0]
-    lines = ["| " + " | ".join(arrows) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    lines = ["| " + " | ".join(markdown_cell(a) for a in arrows) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(markdown_cell(c) for c in r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
 
@@ -248,12 +262,21 @@ def plot_rotation(records: list[dict[str, Any]], path: Path) -> bool:
     return True
 
 
-def write_report(root: str | Path, out: str | Path | None = None, all_metrics: bool = False) -> dict[str, Path]:
-    """Collect ``root`` and write ``results.md``, ``results.csv`` (and ``rotation.png``) into ``out`` (default root)."""
+def write_report(root: str | Path, out: str | Path | None = None, all_metrics: bool = False,
+                 overwrite: bool = False) -> dict[str, Path]:
+    """Collect ``root`` and write ``results.md``, ``results.csv`` (and ``rotation.png``) into ``out`` (default root).
+
+    Raises :class:`~omnidl.utils.outputs.OutputExistsError` (a ``FileExistsError``) before writing anything when
+    one of them exists and not ``overwrite``, or ``out`` is an existing file."""
     records = collect(root)
+    out = Path(out or root)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"report: --out {out} is an existing file; give a folder")
+    planned = [out / "results.md", out / "results.csv"] + ([out / "rotation.png"] if any(r["rotation"] for r in records)
+                                                           else [])
+    guard_outputs(planned, inputs=[Path(r["path"]) / "metrics.json" for r in records], overwrite=overwrite)
     for msg in check_fractions(records):
         print(msg, file=sys.stderr)
-    out = Path(out or root)
     header, rows = table(records, all_metrics=all_metrics, percent=True)
     written = {"markdown": atomic_write_text(out / "results.md", to_markdown(header, rows))}
     header, rows = table(records, all_metrics=all_metrics)  # results.csv: fractions, as omnidl writes them
@@ -270,10 +293,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("sweep", help="a multirun folder (or any folder with job sub-folders holding metrics.json)")
     ap.add_argument("--out", help="where to write results.md/results.csv (default: the sweep folder)")
     ap.add_argument("--all", action="store_true", help="a column for every scalar metric, not only the table ones")
+    ap.add_argument("--overwrite", action="store_true", help="replace existing results.md/results.csv/rotation.png")
     args = ap.parse_args(argv)
     try:
-        written = write_report(args.sweep, args.out, all_metrics=args.all)
-    except FileNotFoundError as exc:
+        written = write_report(args.sweep, args.out, all_metrics=args.all, overwrite=args.overwrite)
+    except (FileNotFoundError, FileExistsError) as exc:
         print(exc, file=sys.stderr)
         return 2
     print(Path(written["markdown"]).read_text())

@@ -81,7 +81,7 @@ def test_layout_iou_and_cen_are_fractions_printed_in_percent(tmp_path, capsys):
     assert rows[0]["final/val/iou_3d"] == "0.9512" and rows[0]["final/val/cen"] == "0.0021"
     err = capsys.readouterr().err
     assert "val/iou_3d = 95.12 is outside [0, 1]" in err
-    assert main([str(tmp_path), "--all"]) == 0
+    assert main([str(tmp_path), "--all", "--overwrite"]) == 0
     out = capsys.readouterr().out
     assert "layout_iou_3d (%)" in out and "iou_2d@4 (%)" in out and "| 90.00 |" in out
 
@@ -91,3 +91,51 @@ def test_layout_units():
     assert [metric_unit(k) for k in ("val/iou_3d", "val/iou_2d@odd", "val/layout_iou_3d", "val/cen", "val/ce",
                                      "val/layout_ce", "val/edge_iou", "val/corner_error")] == \
         ["fraction"] * 4 + ["metres"] * 2 + ["fraction"] * 2
+
+
+# --- issue 48: outputs never destroy data; names are text, never markup ---------------------------------------------
+
+def test_report_never_overwrites_without_the_option(tmp_path, capsys):
+    """A user's results.md in the sweep folder (or a previous report) is kept unless --overwrite."""
+    _job(tmp_path, 0, "F-Std-CE-X", {"val": {"mre": 0.1}, "rotation": {"0": {"mre": 0.1}}})
+    (tmp_path / "results.md").write_text("my notes")
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "results.md already exists" in err and "--overwrite" in err
+    assert (tmp_path / "results.md").read_text() == "my notes"
+    assert not (tmp_path / "results.csv").exists() and not (tmp_path / "rotation.png").exists()  # nothing written
+    assert main([str(tmp_path), "--overwrite"]) == 0
+    assert "F-Std-CE-X" in (tmp_path / "results.md").read_text()
+    assert main([str(tmp_path), "--out", str(tmp_path / "results.csv")]) == 2
+    assert "is an existing file" in capsys.readouterr().err
+
+
+def test_report_names_cannot_break_the_markdown_table(tmp_path):
+    code = "A|B <script>alert(1)</script> & x"
+    _job(tmp_path, 0, "ok", {"val": {"mre": 0.1}})
+    d = tmp_path / "1"
+    (d / ".hydra").mkdir(parents=True)
+    (d / ".hydra" / "config.yaml").write_text(f"name: {json.dumps(code)}\n")
+    (d / "metrics.json").write_text(json.dumps({"val": {"mre": 0.2}}))
+    md = write_report(tmp_path)["markdown"].read_text()
+    rows = md.strip().splitlines()
+    assert len(rows) == 4 and all(r.count(" | ") == rows[0].count(" | ") for r in rows[2:])   # one cell per column
+    assert "<script>" not in md and "A\\|B &lt;script&gt;alert(1)&lt;/script&gt; &amp; x" in md
+
+
+def test_markdown_cell_property():
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from omnidl.apps.report import markdown_cell
+
+    @settings(max_examples=50, deadline=None, derandomize=True)
+    @given(st.text(alphabet=st.sampled_from(list("ab|<>&\\\n\r\"' ")) | st.characters(), max_size=40))
+    def check(text):
+        cell = markdown_cell(text)
+        assert not any(c in cell for c in "<>\n\r")
+        assert "|" not in cell.replace("\\|", "")                    # every pipe is escaped
+        import html
+        back = html.unescape(cell.replace("\\|", "|").replace("\\\\", "\\"))
+        assert back == text.replace("\n", " ").replace("\r", " ")
+    check()

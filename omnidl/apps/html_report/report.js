@@ -1,5 +1,7 @@
 // omnidl report.html: metrics table, per-image cards sortable by any metric, a panorama viewer (2-D canvas,
-// perspective view of an equirectangular image) and a point-cloud viewer (three.js, a 2-D canvas without WebGL).
+// perspective view of an equirectangular image) and a point-cloud viewer (three.js, a 2-D canvas without WebGL) with
+// the predicted and ground-truth layout wireframes over the cloud. Every string of the run reaches the document
+// through textContent / setAttribute only (never innerHTML).
 (function () {
   "use strict";
   var data = JSON.parse(document.getElementById("report-data").textContent);
@@ -171,10 +173,12 @@
     for (var i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
     return new Type(bytes.buffer);
   }
-  var withCloud = data.images.filter(function (im) { return im.cloud; });
+  var withCloud = data.images.filter(function (im) { return im.cloud || im.layout; });
   withCloud.forEach(function (im) { $("cloud-image").appendChild(el("option", { value: im.index }, im.name)); });
   var view = { az: 0.6, el: 0.5, dist: 6, target: [0, 0, 0], size: 2 };
-  var cloud = { pts: null, cols: null };
+  var cloud = { pts: null, cols: null, wire: {} };
+  // layout wireframes: predicted (green) and ground truth (orange), segment end points in the clouds' y-up frame
+  var WIRES = { pred: { color: 0x33ff66, css: "#33ff66", box: "cloud-pred" }, gt: { color: 0xff8c1a, css: "#ff8c1a", box: "cloud-gt" } };
   var box = $("cloud"), webgl = null;
   (function () {
     var probe = document.createElement("canvas");
@@ -187,7 +191,7 @@
     var scene = new THREE.Scene(), cam = new THREE.PerspectiveCamera(55, (box.clientWidth || 640) / (box.clientHeight || 360), 0.01, 500);
     scene.background = new THREE.Color(0x222222);
     scene.add(new THREE.AxesHelper(0.5));
-    webgl = { renderer: renderer, scene: scene, camera: cam, points: null };
+    webgl = { renderer: renderer, scene: scene, camera: cam, points: null, lines: {} };
   })();
   var flat = null;
   if (!webgl) { flat = el("canvas", { width: 640, height: 360 }); flat.style.width = "100%"; box.appendChild(flat); }
@@ -199,6 +203,7 @@
   function drawCloud() {
     if (webgl) {
       if (webgl.points) webgl.points.material.size = view.size * 0.01;
+      Object.keys(webgl.lines).forEach(function (k) { webgl.lines[k].visible = $(WIRES[k].box).checked; });
       var e = eye(); webgl.camera.position.set(e[0], e[1], e[2]);
       webgl.camera.lookAt(view.target[0], view.target[1], view.target[2]);
       webgl.renderer.render(webgl.scene, webgl.camera);
@@ -206,9 +211,14 @@
     }
     var g = flat.getContext("2d"), W = flat.width, H = flat.height;
     g.fillStyle = "#222"; g.fillRect(0, 0, W, H);
-    if (!cloud.pts) return;
     var ca = Math.cos(view.az), sa = Math.sin(view.az), ce = Math.cos(view.el), se = Math.sin(view.el);
-    var n = cloud.pts.length / 3, f = H / (2 * Math.tan(27.5 * Math.PI / 180)), order = [], proj = new Float32Array(n * 3);
+    var f = H / (2 * Math.tan(27.5 * Math.PI / 180));
+    drawPointsFlat(g, W, H, f, ca, sa, ce, se);
+    drawWiresFlat(g, W, H, f, ca, sa, ce, se);
+  }
+  function drawPointsFlat(g, W, H, f, ca, sa, ce, se) {
+    if (!cloud.pts) return;
+    var n = cloud.pts.length / 3, order = [], proj = new Float32Array(n * 3);
     for (var i = 0; i < n; i++) {
       var x = cloud.pts[3 * i] - view.target[0], y = cloud.pts[3 * i + 1] - view.target[1], z = cloud.pts[3 * i + 2] - view.target[2];
       var xr = x * ca - z * sa, zr = x * sa + z * ca;             // turn about y
@@ -224,28 +234,67 @@
       g.fillRect(proj[3 * i], proj[3 * i + 1], view.size, view.size);
     });
   }
-  function loadCloud(im) {
-    $("cloud-name").textContent = im ? im.name + " (" + im.cloud.n + " of " + im.cloud.total + " points)"
-                                     : "no point cloud saved (eval.save_pointclouds)";
-    if (!im) { cloud.pts = null; drawCloud(); return; }
-    cloud.pts = decode(im.cloud.xyz, Float32Array); cloud.cols = decode(im.cloud.rgb, Uint8Array);
-    var n = cloud.pts.length / 3, c = [0, 0, 0], r = 0;
-    for (var i = 0; i < n; i++) for (var k = 0; k < 3; k++) c[k] += cloud.pts[3 * i + k] / n;
-    for (i = 0; i < n; i++) r = Math.max(r, Math.hypot(cloud.pts[3 * i] - c[0], cloud.pts[3 * i + 1] - c[1], cloud.pts[3 * i + 2] - c[2]));
-    view.target = c; view.dist = Math.max(1, 2.2 * r);
-    if (webgl) {
-      if (webgl.points) { webgl.scene.remove(webgl.points); webgl.points.geometry.dispose(); webgl.points.material.dispose(); }
-      var geo = new THREE.BufferGeometry(), cols = new Float32Array(n * 3);
-      // the PLY's colours are sRGB; three.js expects linear vertex colours (it converts to sRGB on output)
-      for (i = 0; i < n * 3; i++) {
-        var c = cloud.cols[i] / 255;
-        cols[i] = c <= 0.04045 ? c / 12.92 : Math.pow((c + 0.055) / 1.055, 2.4);
-      }
-      geo.setAttribute("position", new THREE.BufferAttribute(cloud.pts, 3));
-      geo.setAttribute("color", new THREE.BufferAttribute(cols, 3));
-      webgl.points = new THREE.Points(geo, new THREE.PointsMaterial({ size: view.size * 0.01, vertexColors: true }));
-      webgl.scene.add(webgl.points);
+  function drawWiresFlat(g, W, H, f, ca, sa, ce, se) {
+    function px(p) {
+      var x = p[0] - view.target[0], y = p[1] - view.target[1], z = p[2] - view.target[2];
+      var xr = x * ca - z * sa, zr = x * sa + z * ca, yr = y * ce - zr * se, zz = y * se + zr * ce;
+      var depth = view.dist - zz;
+      return depth <= 0.05 ? null : [W / 2 + f * xr / depth, H / 2 - f * yr / depth];
     }
+    Object.keys(cloud.wire).forEach(function (k) {
+      if (!$(WIRES[k].box).checked) return;
+      var s = cloud.wire[k];
+      g.strokeStyle = WIRES[k].css; g.lineWidth = 2; g.beginPath();
+      for (var i = 0; i + 5 < s.length; i += 6) {
+        var a = px([s[i], s[i + 1], s[i + 2]]), b = px([s[i + 3], s[i + 4], s[i + 5]]);
+        if (a && b) { g.moveTo(a[0], a[1]); g.lineTo(b[0], b[1]); }
+      }
+      g.stroke();
+    });
+  }
+  function loadCloud(im) {
+    var parts = [];
+    if (im && im.cloud) parts.push(im.cloud.n + " of " + im.cloud.total + " points");
+    if (im && im.layout) Object.keys(im.layout).forEach(function (k) { parts.push((k === "gt" ? "ground-truth" : "predicted") + " layout"); });
+    $("cloud-name").textContent = im ? im.name + " (" + parts.join(", ") + ")"
+                                     : "no point cloud or layout saved (eval.save_pointclouds, a layout hook)";
+    cloud.pts = im && im.cloud ? decode(im.cloud.xyz, Float32Array) : null;
+    cloud.cols = im && im.cloud ? decode(im.cloud.rgb, Uint8Array) : null;
+    cloud.wire = {};
+    if (im && im.layout) Object.keys(im.layout).forEach(function (k) { if (WIRES[k]) cloud.wire[k] = im.layout[k]; });
+    // the view centres on the points, else on the wireframes
+    var all = cloud.pts ? cloud.pts : new Float32Array([].concat.apply([], Object.keys(cloud.wire).map(function (k) { return cloud.wire[k]; })));
+    var n = all.length / 3, c = [0, 0, 0], r = 0, i, k;
+    for (i = 0; i < n; i++) for (k = 0; k < 3; k++) c[k] += all[3 * i + k] / n;
+    for (i = 0; i < n; i++) r = Math.max(r, Math.hypot(all[3 * i] - c[0], all[3 * i + 1] - c[1], all[3 * i + 2] - c[2]));
+    if (n) { view.target = c; view.dist = Math.max(1, 2.2 * r); }
+    if (webgl) {
+      if (webgl.points) { webgl.scene.remove(webgl.points); webgl.points.geometry.dispose(); webgl.points.material.dispose(); webgl.points = null; }
+      Object.keys(webgl.lines).forEach(function (key) {
+        webgl.scene.remove(webgl.lines[key]); webgl.lines[key].geometry.dispose(); webgl.lines[key].material.dispose();
+      });
+      webgl.lines = {};
+      if (cloud.pts) {
+        var np = cloud.pts.length / 3, geo = new THREE.BufferGeometry(), cols = new Float32Array(np * 3);
+        // the PLY's colours are sRGB; three.js expects linear vertex colours (it converts to sRGB on output)
+        for (i = 0; i < np * 3; i++) {
+          var s = cloud.cols[i] / 255;
+          cols[i] = s <= 0.04045 ? s / 12.92 : Math.pow((s + 0.055) / 1.055, 2.4);
+        }
+        geo.setAttribute("position", new THREE.BufferAttribute(cloud.pts, 3));
+        geo.setAttribute("color", new THREE.BufferAttribute(cols, 3));
+        webgl.points = new THREE.Points(geo, new THREE.PointsMaterial({ size: view.size * 0.01, vertexColors: true }));
+        webgl.scene.add(webgl.points);
+      }
+      Object.keys(cloud.wire).forEach(function (key) {
+        var lg = new THREE.BufferGeometry();
+        lg.setAttribute("position", new THREE.BufferAttribute(new Float32Array(cloud.wire[key]), 3));
+        var line = new THREE.LineSegments(lg, new THREE.LineBasicMaterial({ color: WIRES[key].color }));
+        webgl.lines[key] = line; webgl.scene.add(line);
+      });
+    }
+    document.body.dataset.wireframes = JSON.stringify(Object.keys(cloud.wire).reduce(function (o, key) {
+      o[key] = cloud.wire[key].length / 6; return o; }, {}));
     drawCloud();
   }
   function cloudImage() {
@@ -254,6 +303,7 @@
   }
   $("cloud-image").addEventListener("change", function () { select(Number($("cloud-image").value), false); });
   $("cloud-size").addEventListener("input", function () { view.size = Number($("cloud-size").value); drawCloud(); });
+  Object.keys(WIRES).forEach(function (k) { $(WIRES[k].box).addEventListener("change", drawCloud); });
   (function () {
     var drag = null, target = webgl ? webgl.renderer.domElement : flat;
     target.addEventListener("pointerdown", function (e) { drag = [e.clientX, e.clientY]; target.setPointerCapture(e.pointerId); });

@@ -80,8 +80,9 @@ def _run(outputs: dict, batch: dict, world: str, central: bool, export_dir: str 
     res: dict[str, Any] = {"layout": [l.to_dict() for l in layouts],
                            "layout_ok": float(np.mean([l.ok for l in layouts]))}
     scores: dict[str, list[float]] = {}
-    for b, lay in enumerate(layouts):
-        gt = gt_layout_from_batch(batch, b)
+    gts = [gt_layout_from_batch(batch, b) for b in range(len(layouts))]
+    res["layout_gt"] = [None if gt is None else _gt_dict(*gt) for gt in gts]   # for report.html's 3D view
+    for lay, gt in zip(layouts, gts):
         if gt is None or not lay.ok:
             continue
         for k, v in layout_scores(lay.corners, (lay.h_floor, lay.h_ceiling), gt[0], gt[1]).items():
@@ -90,6 +91,14 @@ def _run(outputs: dict, batch: dict, world: str, central: bool, export_dir: str 
     if export_dir:
         _export(Path(export_dir), layouts, batch, options.get("camera"))
     return res
+
+
+def _gt_dict(poly: np.ndarray, heights: tuple[float, float]) -> dict[str, list]:
+    """A ground-truth layout as :meth:`Layout.to_dict` gives its corners: ``floor_corners``/``ceiling_corners``
+    ``(N, 3)`` in the layout frame (z up, metres)."""
+    poly = np.asarray(poly, float)
+    return {kind: np.concatenate([poly, np.full((len(poly), 1), float(h))], 1).tolist()
+            for kind, h in (("floor_corners", heights[0]), ("ceiling_corners", heights[1]))}
 
 
 def _name(batch: dict, b: int) -> str:
