@@ -158,6 +158,11 @@ class FreDSNet(MemoryFormat, nn.Module):
             active on most pixels (a dead ReLU output never learns); the public code uses the default init.
         channels_last: run the network in ``torch.channels_last`` memory format (weights and activations; outputs
             are returned contiguous), see :mod:`omnidl.models._memory_format`. Results equal up to float rounding.
+        encoder: ``None`` (default): the ResNet ``backbone``. A foundation encoder instead
+            (:mod:`omnidl.models.foundation.encoder`): ``"dinov2_s"``/``"dinov2_b"``/``"dinov2_l"``/``"dinov2_g"`` or a
+            mapping ``{name: dinov2_s, freeze: all|none|<blocks>}``; ``pretrained`` is then its local checkpoint
+            (DINOv2, timm, transformers or Depth-Anything-V2). Its four maps (strides 4-32) enter the encoder blocks
+            through the lateral 1x1 convolutions. ``equi_parts`` may not hold ``"backbone"`` then.
     """
 
     stride = 32
@@ -168,7 +173,7 @@ class FreDSNet(MemoryFormat, nn.Module):
                  encoder_dropout: float = 0.4, head_width: int = HEAD_WIDTH, fft_norm: str = "backward",
                  spectrum_layout: str = "width", semantic_bn_relu: bool = False,
                  outputs: Sequence[str] = ("depth", "semantic"), depth_bias_init: float = 1.0,
-                 channels_last: bool = False) -> None:
+                 channels_last: bool = False, encoder: str | Mapping[str, Any] | None = None) -> None:
         super().__init__()
         conv = conv_choice(conv, "FreDSNet")
         if not width > 0:
@@ -184,9 +189,16 @@ class FreDSNet(MemoryFormat, nn.Module):
                if conv == "projected" else None)
         parts = set(equi_parts) if cam is not None else set()
 
-        self.backbone = ResNetFeatures(backbone, pretrained=pretrained)
-        if "backbone" in parts:
-            convert_conv2d(self.backbone.body, camera=cam)
+        if encoder is None or encoder == "resnet":
+            self.backbone = ResNetFeatures(backbone, pretrained=pretrained)
+            if "backbone" in parts:
+                convert_conv2d(self.backbone.body, camera=cam)
+        else:
+            if "backbone" in parts:
+                raise ValueError("FreDSNet: equi_parts 'backbone' converts the ResNet's convolutions; it does not "
+                                 f"apply to encoder={encoder!r}")
+            from .foundation.encoder import build_encoder
+            self.backbone = build_encoder(encoder, pretrained)
 
         enc = [_scaled(c, width) for c in ENCODER_WIDTHS]
         latent = _scaled(LATENT_WIDTH, width)

@@ -104,16 +104,24 @@ class HorizonNet(MemoryFormat, nn.Module):
         dropout: dropout of the LSTM/head (0.5).
         channels_last: memory format of the convolutional part (:mod:`omnidl.models._memory_format`). Results equal
             up to float rounding.
+        encoder: ``None`` (default): the ResNet ``backbone``. A foundation encoder instead
+            (:mod:`omnidl.models.foundation.encoder`, e.g. ``"dinov2_s"`` or ``{name: dinov2_s, freeze: all}``), whose
+            four maps (strides 4-32) feed the height towers; ``pretrained`` is then its local checkpoint. ``circular``
+            applies to the towers only (the ViT has no padded convolutions).
     """
 
     def __init__(self, backbone: str = "resnet50", pretrained: str | None = None, rnn: bool = True, hidden: int = 512,
                  step_cols: int = 4, out_scale: int = 8, circular: bool = True, camera: Any = "equirect",
-                 dropout: float = 0.5, channels_last: bool = False) -> None:
+                 dropout: float = 0.5, channels_last: bool = False, encoder: Any = None) -> None:
         super().__init__()
-        self.encoder = ResNetFeatures(backbone, pretrained=pretrained, out_indices=(1, 2, 3, 4))
-        if circular:
-            _wrap_convs(self.encoder)
-            self.encoder.body.maxpool = CircularMaxPool2d()
+        if encoder is None or encoder == "resnet":
+            self.encoder = ResNetFeatures(backbone, pretrained=pretrained, out_indices=(1, 2, 3, 4))
+            if circular:
+                _wrap_convs(self.encoder)
+                self.encoder.body.maxpool = CircularMaxPool2d()
+        else:
+            from .foundation.encoder import build_encoder
+            self.encoder = build_encoder(encoder, pretrained)
         self.step_cols = int(step_cols)
         self.use_rnn = bool(rnn)
         chans = self.encoder.channels
