@@ -55,7 +55,8 @@ class Recipe:
     """How a README command runs in smoke mode.
 
     ``pattern`` is searched in the command; ``smoke`` is appended; ``subs`` are ``(regex, replacement)`` pairs
-    applied first (``{tmp}`` the test's folder, ``{ckpt:<model>}`` a checkpoint of that model, ``{frames}`` a
+    applied first (``{tmp}`` the test's folder, ``{ckpt:<model>}`` a checkpoint of that model, ``{fisheye}`` the
+    fisheye image, calibration and checkpoint of ``tests/apps/test_predict_helpers.readme_fisheye_fixture``, ``{frames}`` a
     folder of panoramas, ``{sweep}`` a multirun folder); ``outputs`` are globs under ``{tmp}`` that must exist;
     ``produces`` names what the command leaves for later commands; ``skip`` says why it cannot run here."""
 
@@ -119,6 +120,10 @@ RECIPES: list[Recipe] = [
     Recipe(r"^python train\.py ", smoke=f"{SMOKE_TRAIN} {_RUN}", outputs=("run/checkpoints/last.pt",)),
     # command-line tools
     Recipe(r"^pip install -e \"\.\[video\]\"", skip="an install step for an optional extra (CI installs .[dev])"),
+    Recipe(r"^omnidl predict depth my_fisheye\.jpg --camera calib\.yaml ",
+           subs=((r"my_fisheye\.jpg", "{fisheye}/my_fisheye.jpg"), (r"calib\.yaml", "{fisheye}/calib.yaml"),
+                 (_CKPT, "{fisheye}/ckpt.pt"), (r"--out pred/", "--out {tmp}/pred/")),
+           outputs=("pred/my_fisheye_depth.npy", "pred/my_fisheye_predict.json")),
     Recipe(r"^omnidl predict depth ", subs=((r"my_panos/", "{frames}/"), (_CKPT, "{ckpt:fredsnet}"),
                                             (r"--out pred/", "--out {tmp}/pred/")),
            outputs=("pred/pano0_depth.png", "pred/pano0.ply", "pred/pano0_figure.png")),
@@ -281,10 +286,19 @@ def _frames(base: Path) -> Path:
     return d
 
 
+def _fisheye(base: Path) -> Path:
+    """The README's fisheye example in ``base/fisheye``: ``my_fisheye.jpg``, ``calib.yaml``, ``ckpt.pt``."""
+    from tests.apps.test_predict_helpers import readme_fisheye_fixture
+    d = base / "fisheye"
+    if not (d / "ckpt.pt").is_file():
+        readme_fisheye_fixture(d)
+    return d
+
+
 def _needs(recipe: Recipe) -> set[str]:
     """What a recipe's placeholders need from other commands (``ckpt:<model>``, ``sweep``)."""
     text = " ".join([recipe.smoke, *(rep for _, rep in recipe.subs)])
-    return {k for k in re.findall(r"\{([\w:]+)\}", text) if k not in ("tmp", "frames")}
+    return {k for k in re.findall(r"\{([\w:]+)\}", text) if k not in ("tmp", "frames", "fisheye")}
 
 
 def _producer(key: str) -> Command:
@@ -341,6 +355,9 @@ class Runner:
             if key == "frames":
                 with self.frames_lock:
                     return str(_frames(self.base))
+            if key == "fisheye":
+                with self.frames_lock:
+                    return str(_fisheye(self.base))
             return self.produced(key)
 
         line = _substitute(cmd.text, recipe_for(cmd), fill)

@@ -9,8 +9,13 @@ from torch import Tensor
 
 
 def check_image(x: Tensor, model: str, multiple: int = 1) -> None:
-    """Raise a ``ValueError`` unless ``x`` is ``(B, 3, H, W)`` with ``H`` and ``W`` multiples of ``multiple``,
-    naming the model, the shape and a size that would do."""
+    """Raise a ``ValueError`` unless ``x`` is a floating-point ``(B, 3, H, W)`` with ``H`` and ``W`` multiples of
+    ``multiple``, naming the model, the shape and a size that would do. Integer images (``uint8`` 0..255) are
+    refused: normalising them in their own dtype would wrap around (convert with
+    :func:`omnidl.data.readers.image_to_float` first)."""
+    if not x.is_floating_point():
+        raise ValueError(f"{model} expects a floating-point image in [0, 1], got dtype {x.dtype}; convert it first "
+                         "(omnidl.data.readers.image_to_float: uint8 / 255, uint16 / 65535)")
     if x.dim() != 4 or x.shape[1] != 3:
         raise ValueError(f"{model} expects RGB images of shape (B, 3, H, W), got {tuple(x.shape)}")
     h, w = int(x.shape[-2]), int(x.shape[-1])

@@ -14,8 +14,8 @@ from omnidl.apps.predict.video import H264Writer, backend
 
 def test_cli_errors_name_the_problem(tmp_path, capsys):
     assert omnidl_main([]) == 2
-    assert omnidl_main(["train"]) == 2
-    assert "unknown command 'train'" in capsys.readouterr().err
+    assert omnidl_main(["frobnicate"]) == 2
+    assert "unknown command 'frobnicate'" in capsys.readouterr().err
     img = tmp_path / "a.png"
     import cv2
     cv2.imwrite(str(img), np.zeros((8, 16, 3), np.uint8))

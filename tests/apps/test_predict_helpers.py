@@ -29,7 +29,8 @@ def tiny_checkpoint(path: Path, model: str, seed: int = 0) -> Path:
     from omnidl.engine.checkpoint import save_checkpoint
     from omnidl.engine.config import register_configs
     register_configs()
-    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "configs"), job_name="predict_test"):
+    from omnidl.engine.config import config_root
+    with initialize_config_dir(version_base="1.3", config_dir=str(config_root()), job_name="predict_test"):
         cfg = compose(config_name="train", overrides=[f"paths.output_dir={path.parent}", *TINY[model]])
     torch.manual_seed(seed)
     net = build_model(cfg)
@@ -68,3 +69,28 @@ def synth_folder(out: Path, sizes=((256, 128), (192, 96)), n: int = 1, tilted: b
                 bgr = (t.permute(1, 2, 0).numpy()[..., ::-1] * 255).round().astype(np.uint8)
                 cv2.imwrite(str(img_dir / f"{name}_tilted.png"), bgr)
     return img_dir
+
+
+def readme_fisheye_fixture(folder: Path) -> dict[str, Path]:
+    """The files of the README's ``omnidl predict depth my_fisheye.jpg --camera calib.yaml`` example in
+    ``folder``: ``my_fisheye.jpg`` (a synthetic room through the F195 fisheye at 270x240, a quarter of its
+    1080x960 calibration), ``calib.yaml`` (that calibration, omnidl's camera YAML; any format
+    :func:`omnidl.cameras.load` reads works) and ``ckpt.pt`` (a tiny randomly initialised U-Net of 64x32
+    equirectangular panoramas, saved as ``train.py`` saves checkpoints)."""
+    import cv2
+
+    from omnidl.cameras import resolve_camera, save
+    from omnidl.engine.checkpoint import save_checkpoint
+    from omnidl.models import create_model
+    from omnidl.synth import render_sample
+    folder.mkdir(parents=True, exist_ok=True)
+    s = render_sample(resolve_camera("kb_f195", 270, 240), 0, "test", 0, furniture=False)
+    bgr = (s["image"].permute(1, 2, 0).numpy()[..., ::-1] * 255).round().astype(np.uint8)
+    assert cv2.imwrite(str(folder / "my_fisheye.jpg"), bgr)
+    save(resolve_camera("kb_f195"), folder / "calib.yaml")
+    torch.manual_seed(0)
+    kw = {"base_channels": 4, "levels": 1}
+    save_checkpoint(folder / "ckpt.pt", {"model": create_model("unet", **kw).state_dict(), "step": 0, "epoch": 0,
+                                         "config": {"model": {"name": "unet", **kw}, "data": {"height": 32, "width": 64},
+                                                    "camera": {"type": "equirect", "width": 64, "height": 32}}})
+    return {"image": folder / "my_fisheye.jpg", "camera": folder / "calib.yaml", "checkpoint": folder / "ckpt.pt"}

@@ -19,6 +19,7 @@ from omnidl.geometry.boundary import rows_to_angles
 from omnidl.geometry.rotations import euler_to_matrix
 from omnidl.geometry.upright import to_input_frame
 from omnidl.synth import render_sample
+from omnidl.viz import read_glb
 
 
 class OracleLayoutNet(torch.nn.Module):
@@ -43,7 +44,8 @@ def test_tilted_panorama_layout_matches_the_upright_one(tmp_path):
     R = euler_to_matrix(math.radians(14.0), math.radians(-9.0), 0.0).double()    # R_up_cam of the tilted copy
     tilted = to_input_frame(s["image"], R).clamp(0, 1)
     predict_layout(pred, "up", s["image"], tmp_path, UprightPolicy(), camera_height=float(s["camera_height"]))
-    predict_layout(pred, "tilt", tilted, tmp_path, UprightPolicy(), camera_height=float(s["camera_height"]))
+    files = predict_layout(pred, "tilt", tilted, tmp_path, UprightPolicy(), camera_height=float(s["camera_height"]),
+                           mesh=("glb", "obj"))
     up = json.loads((tmp_path / "up_layout.json").read_text())
     tl = json.loads((tmp_path / "tilt_layout.json").read_text())
     assert up["layout"]["ok"] and tl["layout"]["ok"] and not up["upright"]["rotated"] and tl["upright"]["rotated"]
@@ -58,5 +60,9 @@ def test_tilted_panorama_layout_matches_the_upright_one(tmp_path):
     corner_error = float(d.norm(dim=-1).mean() / math.hypot(W, H) * 100)
     print(f"corner error tilted vs upright through predict layout: {corner_error:.3f} % of the diagonal")
     assert corner_error < 0.5
-    for f in ("tilt_layout.obj", "tilt_wireframe.png", "tilt_figure.png"):
+    for f in ("tilt_layout.obj", "tilt_wireframe.png", "tilt_figure.png", "tilt_room.obj", "tilt_room.mtl"):
         assert (tmp_path / f).stat().st_size > 0
+    # --mesh glb obj: the room textured with the tilted input, in the same y-up frame as the wireframe .obj
+    doc, _ = read_glb(tmp_path / "tilt_room.glb")
+    assert doc["images"] and doc["meshes"] and all(p.exists() for p in files)
+    assert {p.name for p in files} >= {"tilt_room.glb", "tilt_room.obj", "tilt_room.mtl"}

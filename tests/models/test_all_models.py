@@ -195,3 +195,11 @@ def test_inductor_compile_matches_eager(conv):
     torch.testing.assert_close(losses[1], losses[0], atol=1e-4, rtol=1e-3)
     losses[1].backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters() if p.requires_grad)
+
+
+@pytest.mark.parametrize("name,conv", VARIANTS, ids=IDS)
+def test_integer_images_are_refused(name, conv):
+    """A ``uint8`` image (0..255) is refused with a message naming the dtype, never normalised in uint8."""
+    model, x = build(name, conv)
+    with pytest.raises(ValueError, match="floating-point image.*uint8"):
+        model.eval()(x.mul(255).to(torch.uint8))

@@ -148,3 +148,74 @@ def test_viz_writers(fn, verdict, match, tmp_path):
     out = expect(lambda: fn(tmp_path), verdict, match)
     if verdict == OK:
         assert read_depth_png16(out[0]).max() == 0
+
+
+# -- `omnidl predict --camera`, the no-stretch rule and the cloud options (issue 49) ------------------------------
+
+def _oracle(h=32, w=64, camera=None):
+    from omnidl.apps.predict.loader import Predictor
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1))
+
+        def forward(self, x):
+            return {"depth": torch.full((1, 1, h, w), 2.0) + 0 * self.w}
+    return Predictor(Net(), "oracle", h, w, camera, "test", info={"outputs": ("depth",)})
+
+
+def _camera_case(kind, tmp):
+    from omnidl.apps.predict.camera import CameraBridge, input_camera
+    from omnidl.apps.predict.points import CloudOptions
+    from omnidl.apps.predict.run import UprightPolicy, check_input_size, predict_depth
+    from omnidl.cameras import Equirectangular, NonCentralPanorama
+    if kind == "preset_other_aspect":
+        return input_camera("kb_f195", 512, 256)
+    if kind == "unknown_preset":
+        return input_camera("kb_f999", 64, 32)
+    if kind == "missing_file":
+        return input_camera(str(tmp / "calib.yaml"), 64, 32)
+    if kind == "yaml_without_type":
+        (tmp / "cam.yaml").write_text("fx: 100\nfy: 100\n")
+        return input_camera(str(tmp / "cam.yaml"), 64, 32)
+    if kind == "noncentral_model":
+        return CameraBridge(Equirectangular(width=64, height=32), NonCentralPanorama(width=64, height=32, rc=0.2))
+    if kind == "negative_max_points":
+        return CloudOptions(max_points=-1)
+    if kind == "inf_voxel":
+        return CloudOptions(voxel=float("inf"))
+    if kind == "fisheye_into_panorama_model":
+        return check_input_size(_oracle(), 1280, 960)
+    if kind == "predictor_squeeze":
+        return _oracle()(torch.rand(3, 64, 72))
+    if kind == "own_camera_through_camera":          # --camera equirect on a panorama: nothing masked
+        files = predict_depth(_oracle(), "p", torch.rand(3, 32, 64), tmp, UprightPolicy(mode="off"),
+                              camera=input_camera("equirect", 64, 32))
+        import json
+        cov = json.loads((tmp / "p_predict.json").read_text())["camera"]["coverage"]
+        assert cov["input_covered_fraction"] == 1.0 and np.allclose(np.load(tmp / "p_depth.npy"), 2.0, atol=1e-5)
+        return files
+    raise AssertionError(kind)
+
+
+CAMERA_ROWS = [
+    row("--camera preset of another aspect", "preset_other_aspect", verdict=ERROR,
+        match=r"--camera 'kb_f195'.*512x256.*1080x960"),
+    row("--camera unknown preset", "unknown_preset", verdict=ERROR, match=r"--camera 'kb_f999': unknown camera"),
+    row("--camera file missing", "missing_file", verdict=ERROR, match=r"calib\.yaml.*does not exist"),
+    row("--camera YAML without a model", "yaml_without_type", verdict=ERROR, match=r"--camera '.*cam\.yaml'"),
+    row("checkpoint of a non-central camera with --camera", "noncentral_model", verdict=ERROR,
+        match=r"non-central.*without the scene's depth"),
+    row("--max-points -1", "negative_max_points", verdict=ERROR, match=r"--max-points must be a whole number >= 0"),
+    row("--voxel inf", "inf_voxel", verdict=ERROR, match=r"--voxel must be a finite size"),
+    row("1280x960 fisheye into a 64x32 panorama model", "fisheye_into_panorama_model", verdict=ERROR,
+        match=r"1280x960.*64x32.*--camera"),
+    row("72x64 image into a 64x32 network", "predictor_squeeze", verdict=ERROR, match=r"72x64.*64x32.*not stretched"),
+    row("panorama with --camera equirect", "own_camera_through_camera", verdict=OK),
+]
+
+
+@pytest.mark.parametrize("kind,verdict,match", CAMERA_ROWS)
+def test_camera_rows(kind, verdict, match, tmp_path):
+    expect(lambda: _camera_case(kind, tmp_path), verdict, match)

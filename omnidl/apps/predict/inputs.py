@@ -1,6 +1,10 @@
 """What ``omnidl predict`` reads: one image, a folder of images (sorted by name) or a video (every frame).
 
-Each item is ``(name, image)`` with ``image (3, H, W)`` float RGB in [0, 1] at the file's own resolution.
+Each item is ``(name, image)`` with ``image (3, H, W)`` float RGB in [0, 1] at the file's own resolution
+(:func:`iter_items` adds the file each item comes from). ``name`` is the file's stem, unless two files of a
+folder share it (``a.png`` + ``a.jpg``, or ``A.png`` + ``a.png``, which a case-insensitive file system cannot
+tell apart): then each gets its extension, ``a_png`` and ``a_jpg`` (:func:`omnidl.utils.outputs.unique_stems`,
+deterministic), so their outputs never overwrite each other. Video frames are ``<stem>_<index:06d>``.
 """
 from __future__ import annotations
 
@@ -31,23 +35,15 @@ def kind_of(path: str | Path) -> str:
                      f"a video ({', '.join(VIDEO_EXTENSIONS)}) or a folder of images")
 
 
-def _bgr_to_tensor(bgr: np.ndarray) -> torch.Tensor:
-    if bgr.ndim == 2:
-        bgr = np.repeat(bgr[..., None], 3, 2)
-    if bgr.dtype == np.uint16:
-        arr = bgr[..., :3][..., ::-1].astype(np.float32) / 65535.0
-    else:
-        arr = bgr[..., :3][..., ::-1].astype(np.float32) / 255.0
-    return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)
-
-
 def read_image(path: str | Path) -> torch.Tensor:
-    """An image file -> ``(3, H, W)`` RGB in [0, 1] (8- or 16-bit, grey or colour; alpha dropped)."""
-    import cv2
-    bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if bgr is None:
-        raise ValueError(f"{path}: not a readable image")
-    return _bgr_to_tensor(bgr)
+    """An image file -> ``(3, H, W)`` RGB in [0, 1] (8- or 16-bit, grey or colour; alpha dropped; EXIF
+    orientation applied; a file name of any bytes): the datasets' reading policy,
+    :func:`omnidl.data.readers.read_rgb`. An unreadable file is a ``ValueError`` naming it."""
+    from omnidl.data.readers import read_rgb
+    try:
+        return read_rgb(path, field="INPUT")
+    except OSError as e:                  # UnreadableFileError: missing, undecodable, over OpenCV's pixel limit
+        raise ValueError(str(e)) from e
 
 
 def list_images(folder: str | Path) -> list[Path]:
@@ -58,41 +54,61 @@ def list_images(folder: str | Path) -> list[Path]:
     return files
 
 
-def iter_inputs(path: str | Path, limit: int = 0) -> Iterator[tuple[str, torch.Tensor | None]]:
-    """``(name, image)`` for every input item; ``image`` is None (with a warning) for an unreadable file of a
-    folder, so one bad file does not stop a batch."""
+def item_names(paths: list[Path]) -> list[str]:
+    """Output names of a folder's images: :func:`omnidl.utils.outputs.unique_stems` (see the module docstring)."""
+    from omnidl.utils.outputs import unique_stems
+    return unique_stems(paths)
+
+
+def iter_items(path: str | Path, limit: int = 0) -> Iterator[tuple[str, torch.Tensor | None, Path]]:
+    """``(name, image, source file)`` for every input item; ``image`` is None (with a warning) for an
+    unreadable file of a folder, so one bad file does not stop a batch. A video's frames share its file."""
     kind = kind_of(path)
     p = Path(path)
     n = 0
     if kind == "image":
-        yield p.stem, read_image(p)
+        yield p.stem, read_image(p), p
         return
     if kind == "folder":
-        for f in list_images(p):
-            if limit and n >= limit:
-                return
-            n += 1
+        files = list_images(p)
+        if limit:
+            files = files[:limit]
+        for f, name in zip(files, item_names(files)):
             try:
-                yield f.stem, read_image(f)
+                yield name, read_image(f), f
             except ValueError as e:
                 warnings.warn(f"{e}; skipped", stacklevel=2)
-                yield f.stem, None
+                yield name, None, f
         return
-    import cv2
-    cap = cv2.VideoCapture(str(p))
-    if not cap.isOpened():
-        raise ValueError(f"INPUT {p}: OpenCV cannot open this video")
+    from omnidl.data.readers import iter_video_frames
     try:
-        while not limit or n < limit:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            yield f"{p.stem}_{n:06d}", _bgr_to_tensor(frame)
+        for frame in iter_video_frames(p, limit):
+            yield f"{p.stem}_{n:06d}", frame, p
             n += 1
-    finally:
-        cap.release()
+    except OSError as e:                  # UnreadableFileError: OpenCV cannot open it
+        raise ValueError(f"INPUT {p}: {e}") from e
     if n == 0:
         raise ValueError(f"INPUT {p}: the video has no readable frame")
+
+
+def planned_items(path: str | Path, limit: int = 0) -> list[tuple[str, Path]] | None:
+    """``(name, file)`` of every item of an image or a folder without reading them (None for a video, whose
+    frame count is known only once read)."""
+    kind = kind_of(path)
+    p = Path(path)
+    if kind == "image":
+        return [(p.stem, p)]
+    if kind == "folder":
+        files = list_images(p)
+        files = files[:limit] if limit else files
+        return list(zip(item_names(files), files))
+    return None
+
+
+def iter_inputs(path: str | Path, limit: int = 0) -> Iterator[tuple[str, torch.Tensor | None]]:
+    """``(name, image)`` of :func:`iter_items`."""
+    for name, image, _ in iter_items(path, limit):
+        yield name, image
 
 
 def video_fps(path: str | Path, default: float = 10.0) -> float:
@@ -100,7 +116,10 @@ def video_fps(path: str | Path, default: float = 10.0) -> float:
     if kind_of(path) != "video":
         return default
     import cv2
-    cap = cv2.VideoCapture(str(path))
-    fps = cap.get(cv2.CAP_PROP_FPS) if cap.isOpened() else 0
-    cap.release()
+
+    from omnidl.data.readers import cv2_path
+    with cv2_path(path) as name:
+        cap = cv2.VideoCapture(name)
+        fps = cap.get(cv2.CAP_PROP_FPS) if cap.isOpened() else 0
+        cap.release()
     return float(fps) if fps and fps > 0 and np.isfinite(fps) else default

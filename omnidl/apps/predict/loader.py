@@ -41,11 +41,15 @@ class Predictor:
     info: dict = field(default_factory=dict)
 
     def camera_for(self, width: int, height: int):
-        """The checkpoint's camera resized to ``width x height`` (full equirect when none is configured)."""
-        from omnidl.cameras import Equirectangular, resolve_camera
+        """The checkpoint's camera on a ``width x height`` image (a full equirect of the network size when none
+        is configured). The image must be the calibrated one uniformly resized (or follow a ``size_policy``
+        the camera config states); any other size is a ``ValueError`` naming both sizes, never a stretch."""
+        from omnidl.cameras import Equirectangular, check_image_size, resolve_camera
         if self.camera is None:
+            check_image_size((height, width), Equirectangular(width=self.width, height=self.height),
+                             f"{self.name} input")
             return Equirectangular(width=width, height=height)
-        return resolve_camera(self.camera, width, height)
+        return resolve_camera(self.camera, width, height, check_aspect=True)
 
     @property
     def outputs(self) -> set[str]:
@@ -55,14 +59,29 @@ class Predictor:
 
     @torch.no_grad()
     def __call__(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
-        """``image (3, H, W)`` in [0, 1] at any size -> the model outputs at the network size (batch of 1)."""
+        """``image (3, H, W)`` in [0, 1] -> the model outputs at the network size (batch of 1). ``H x W`` is the
+        network's input size or that image uniformly resized (antialiased to it); any other size is a
+        ``ValueError`` naming both (never stretched; ``omnidl predict --camera`` re-projects other images)."""
         import torch.nn.functional as F
+
+        from omnidl.cameras.resolve import is_uniform_resize
         x = image[None].float()
         if x.shape[-2:] != (self.height, self.width):
+            h, w = int(x.shape[-2]), int(x.shape[-1])
+            if not is_uniform_resize(w, h, _Size(self.width, self.height)):
+                raise ValueError(f"{self.name}: the image is {w}x{h} (W x H) but the network takes {self.width}x"
+                                 f"{self.height} or that image uniformly resized; it is not stretched (give the "
+                                 "image's camera with --camera to re-project it)")
             x = F.interpolate(x, size=(self.height, self.width), mode="bilinear", align_corners=False, antialias=True)
         p = next(self.model.parameters())
         out = self.model(x.to(p.device, p.dtype))
         return {k: v.detach().float().cpu() for k, v in out.items() if isinstance(v, torch.Tensor)}
+
+
+@dataclass(frozen=True)
+class _Size:
+    width: int
+    height: int
 
 
 def _probe_outputs(model: torch.nn.Module, h: int, w: int) -> tuple[str, ...]:
