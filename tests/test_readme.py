@@ -120,6 +120,7 @@ RECIPES: list[Recipe] = [
     Recipe(r"^python train\.py ", smoke=f"{SMOKE_TRAIN} {_RUN}", outputs=("run/checkpoints/last.pt",)),
     # command-line tools
     Recipe(r"^pip install -e \"\.\[video\]\"", skip="an install step for an optional extra (CI installs .[dev])"),
+    Recipe(r"--model depth_anything_v2 --weights", skip="needs Depth-Anything-V2 weights on disk (docs/foundation.md)"),
     Recipe(r"^omnidl predict depth my_fisheye\.jpg --camera calib\.yaml ",
            subs=((r"my_fisheye\.jpg", "{fisheye}/my_fisheye.jpg"), (r"calib\.yaml", "{fisheye}/calib.yaml"),
                  (_CKPT, "{fisheye}/ckpt.pt"), (r"--out pred/", "--out {tmp}/pred/")),

@@ -177,3 +177,23 @@ def test_generated_names_give_distinct_outputs_that_never_replace_an_input(files
                     guard_outputs(planned, [folder], overwrite=overwrite)
             else:
                 guard_outputs(planned, [folder], overwrite=overwrite)
+
+
+def test_file_names_of_any_bytes(tmp_path, ckpt):
+    """An image whose name is not valid UTF-8 (as some file systems hold) is predicted like any other: OpenCV's
+    binding crashed the interpreter on such a name (exit 139), so it runs in a subprocess."""
+    import os
+    import subprocess
+    import sys
+    folder = tmp_path / "in"
+    folder.mkdir()
+    ok, buf = cv2.imencode(".png", np.random.default_rng(0).integers(0, 255, (32, 64, 3), dtype=np.uint8))
+    assert ok
+    with open(os.path.join(os.fsencode(folder), b"pano_\xff\xfe.png"), "wb") as f:
+        f.write(buf.tobytes())
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "omnidl.apps.cli", "predict", "depth", str(folder), "--checkpoint",
+                          str(ckpt), "--out", str(out), "--no-ply"], capture_output=True, text=True, errors="replace", timeout=300,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert len(list(out.glob("*_depth.npy"))) == 1
