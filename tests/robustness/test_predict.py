@@ -51,9 +51,9 @@ INPUTS = [
     row("missing input", "missing", verdict=ERROR, match=r"nope\.png: no such file"),
     row("unknown extension", "bad_extension", verdict=ERROR, match=r"notes\.txt: unknown extension '\.txt'"),
     row("empty folder", "empty_folder", verdict=ERROR, match=r"empty holds no images"),
-    row("corrupt single image", "corrupt_single", verdict=ERROR, match=r"broken\.png: not a readable image"),
-    row("corrupt image in a folder", "corrupt_in_folder", verdict=SKIP, match=r"b\.png: not a readable image; skipped"),
-    row("video OpenCV cannot read", "garbage_video", verdict=ERROR, match=r"clip\.mp4: (OpenCV cannot open|the video has no)"),
+    row("corrupt single image", "corrupt_single", verdict=ERROR, match=r"cannot decode image .*broken\.png \(INPUT: truncated or not an image"),
+    row("corrupt image in a folder", "corrupt_in_folder", verdict=SKIP, match=r"cannot decode image .*b\.png \(INPUT: truncated or not an image\?\); skipped"),
+    row("video OpenCV cannot read", "garbage_video", verdict=ERROR, match=r"clip\.mp4: (cannot open video .*clip\.mp4 \(OpenCV cannot decode it\)|the video has no)"),
     row("16-bit grey image", "gray16", verdict=OK),
     row("RGBA image", "rgba", verdict=OK),
 ]
