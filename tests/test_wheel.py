@@ -3,7 +3,7 @@
 Builds the wheel from a copy of the sources (PEP 517 ``build_wheel`` of setuptools, no build isolation: nothing
 is downloaded and the checkout gets no ``build/`` folder), installs it with ``pip --no-deps`` into a fresh
 virtual environment outside the checkout whose ``site-packages`` also sees the running environment's
-(``sys.executable``'s: ``/work/venv``, CI's ``.ci-venv``) through a ``.pth`` file, so the dependencies are reused
+(``sys.executable``'s, e.g. CI's ``.ci-venv``) through a ``.pth`` file, so the dependencies are reused
 and the editable install of the checkout is not (``.pth`` files of a path added that way are not run). Then,
 from a temporary folder outside the checkout, with that environment's ``omnidl`` script:
 
