@@ -29,6 +29,7 @@ import torchvision
 from torch import Tensor
 
 from ._checks import check_image
+from ._weights import load_strict
 
 log = logging.getLogger(__name__)
 
@@ -74,17 +75,7 @@ def load_backbone_weights(net: nn.Module, path: str | os.PathLike) -> None:
                 k = k[len(prefix):]
         if not k.startswith("fc."):
             cleaned[k] = v
-    own = net.state_dict()
-    missing = [k for k in own if k not in cleaned]
-    unexpected = [k for k in cleaned if k not in own]
-    wrong = [f"{k}: {tuple(cleaned[k].shape)} vs {tuple(v.shape)}" for k, v in own.items()
-             if k in cleaned and tuple(cleaned[k].shape) != tuple(v.shape)]
-    if missing or unexpected or wrong:
-        raise ValueError(f"backbone weights {path!r} do not fit {type(net).__name__}: "
-                         f"missing {missing[:8]}{'...' if len(missing) > 8 else ''}, "
-                         f"unexpected {unexpected[:8]}{'...' if len(unexpected) > 8 else ''}, "
-                         f"wrong shapes {wrong[:4]}{'...' if len(wrong) > 4 else ''}")
-    net.load_state_dict(cleaned, strict=True)
+    load_strict(net, cleaned, f"backbone weights file {path!r}")
 
 
 class ResNetFeatures(nn.Module):

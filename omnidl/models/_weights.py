@@ -8,6 +8,7 @@ bare state dict. ``module.`` prefixes (DistributedDataParallel) are stripped. Fi
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 
 from torch import Tensor, nn
 
@@ -29,6 +30,22 @@ def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
         raise RuntimeError(f"weights file {path!r}: expected a checkpoint with 'model' or 'state_dict', or a bare "
                            f"state dict; got {type(obj).__name__}")
     return {k.removeprefix("module."): v for k, v in sd.items()}
+
+
+def load_strict(module: nn.Module, sd: Mapping[str, Tensor], what: str) -> None:
+    """``module.load_state_dict(sd, strict=True)`` after a check whose ``ValueError`` names ``what``, the missing
+    and unexpected keys and the tensors of the wrong shape (a few of each)."""
+    own = module.state_dict()
+    missing = [k for k in own if k not in sd]
+    unexpected = [k for k in sd if k not in own]
+    wrong = [f"{k}: {tuple(sd[k].shape)} vs {tuple(v.shape)}" for k, v in own.items()
+             if k in sd and tuple(sd[k].shape) != tuple(v.shape)]
+    if missing or unexpected or wrong:
+        raise ValueError(f"{what} does not fit {type(module).__name__}: "
+                         f"missing {missing[:8]}{'...' if len(missing) > 8 else ''}, "
+                         f"unexpected {unexpected[:8]}{'...' if len(unexpected) > 8 else ''}, "
+                         f"wrong shapes {wrong[:4]}{'...' if len(wrong) > 4 else ''}")
+    module.load_state_dict(dict(sd), strict=True)
 
 
 def load_weights(model: nn.Module, path: str | os.PathLike, strict: bool = True) -> None:

@@ -35,6 +35,8 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
+from .._weights import load_strict
+
 log = logging.getLogger(__name__)
 
 WEIGHT_SUFFIXES = (".safetensors", ".pth", ".pt", ".bin")
@@ -281,20 +283,6 @@ def vit_size_of(vit_sd: Mapping[str, Tensor]) -> str | None:
     size = _SIZE_OF_DIM.get(dim)
     from .vit import VIT_SIZES
     return size if size is not None and VIT_SIZES[size][1] == depth else None
-
-
-def load_strict(module: torch.nn.Module, sd: Mapping[str, Tensor], what: str) -> None:
-    """``module.load_state_dict(sd)`` with an error naming ``what``, the missing/unexpected keys and wrong shapes."""
-    own = module.state_dict()
-    missing = [k for k in own if k not in sd]
-    unexpected = [k for k in sd if k not in own]
-    wrong = [f"{k}: {tuple(sd[k].shape)} vs {tuple(v.shape)}" for k, v in own.items()
-             if k in sd and tuple(sd[k].shape) != tuple(v.shape)]
-    if missing or unexpected or wrong:
-        raise ValueError(f"{what} does not fit {type(module).__name__}: missing {missing[:6]}"
-                         f"{'...' if len(missing) > 6 else ''}, unexpected {unexpected[:6]}"
-                         f"{'...' if len(unexpected) > 6 else ''}, wrong shapes {wrong[:4]}")
-    module.load_state_dict(dict(sd), strict=True)
 
 
 def _max_depth_from_name(name: str) -> float | None:
