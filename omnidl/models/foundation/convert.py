@@ -1,39 +1,50 @@
 """Read foundation-model checkpoints from disk and map their parameter names onto omnidl's modules.
 
-Nothing is downloaded. Accepted files (``path`` may also be a folder holding exactly one of them):
+Nothing is downloaded. Accepted files (``path`` may also be a folder holding exactly one of them), by layout
+(:func:`detect_layout`, from the parameter names) and the ``pos_interp`` it gives:
 
-=============================================  ==========================================  ===================
-file (as published)                            layout                                      ``pos_interp``
-=============================================  ==========================================  ===================
-``depth_anything_v2_vit{s,b,l}.pth``           Depth-Anything-V2 code: ``pretrained.*``,   ``dinov2``
-``depth_anything_v2_metric_{hypersim,vkitti}`` ``depth_head.*`` (:class:`DepthAnythingV2`
-``_vit{s,b,l}.pth``                            names exactly)
-``model.safetensors`` / ``pytorch_model.bin``  transformers ``DepthAnythingForDepthEstimation``  ``hf``
-(+ ``config.json``), e.g. the                  (``backbone.*``, ``neck.*``, ``head.*``; old
-``depth-anything/Depth-Anything-V2-Small-hf``  ``attention.attention.query`` and new
-repository                                     ``attention.q_proj`` names)
-``dinov2_vit{s,b,l,g}14_pretrain.pth``         DINOv2 code (``blocks.i.*``, ``mask_token``)  ``dinov2``
-timm ``vit_*_patch14_dinov2`` state dict       timm (``blocks.i.*``)                        ``timm``
-(``model.safetensors`` / ``pytorch_model.bin``
-of ``timm/vit_small_patch14_dinov2.lvd142m``)
-transformers ``Dinov2Model``                   ``embeddings.*``, ``encoder.layer.i.*``      ``hf``
-=============================================  ==========================================  ===================
+* ``depth_anything_v2``: ``depth_anything_v2_vit{s,b,l}.pth``, ``depth_anything_v2_metric_{hypersim,vkitti}_vit
+  {s,b,l}.pth`` (Depth-Anything-V2 code: ``pretrained.*``, ``depth_head.*``, :class:`DepthAnythingV2` names
+  exactly); ``dinov2``.
+* ``hf_depth_anything``: transformers ``DepthAnythingForDepthEstimation`` (``model.safetensors`` /
+  ``pytorch_model.bin`` + ``config.json``, e.g. ``depth-anything/Depth-Anything-V2-Small-hf``; ``backbone.*``,
+  ``neck.*``, ``head.*``; old ``attention.attention.query`` and new ``attention.q_proj`` names); ``hf``.
+* ``dinov2``: the DINOv2 code, ``dinov2_vit{s,b,l,g}14_pretrain.pth`` (``blocks.i.*``, ``mask_token``);
+  ``dinov2``. With registers, ``dinov2_vit{s,b,l,g}14_reg4_pretrain.pth`` (``register_tokens``): ``dinov2_reg``.
+* ``timm``: timm ``vit_*_patch14_dinov2`` and ``vit_*_patch14_reg4_dinov2`` (``reg_token``, a class-less
+  ``pos_embed``), e.g. ``model.safetensors`` of ``timm/vit_small_patch14_dinov2.lvd142m``; ``timm``.
+* ``hf_dinov2``: transformers ``Dinov2Model`` (``embeddings.*``, ``encoder.layer.i.*``; ``hf``) and
+  ``Dinov2WithRegistersModel`` (``embeddings.register_tokens``, e.g. ``facebook/dinov2-with-registers-small``;
+  ``dinov2_reg``).
+* ``dinov3``: facebookresearch/dinov3 ``dinov3_vit{s16,s16plus,b16,l16,h16plus}_pretrain_lvd1689m-<hash>.pth``
+  (also ``vitl16`` ``sat493m``): ``storage_tokens``, ``rope_embed.periods``, ``qkv.bias_mask``, SwiGLU
+  ``w1``/``w2``/``w3``.
+* ``timm_dinov3``: timm ``vit_{small,small_plus,base,large,huge_plus}_patch16_dinov3[_qkvb]`` (``Eva``:
+  ``reg_token``, ``gamma_1``, ``q_bias``/``v_bias``, SwiGLU ``fc1_g``/``fc1_x``).
+* ``hf_dinov3``: transformers ``DINOv3ViTModel`` (``facebook/dinov3-vits16-pretrain-lvd1689m``: ``layer.i.*``;
+  saved by transformers >= 5: ``model.layer.i.*``).
+* ``omnidl_dinov3``: omnidl's own names (a saved DINOv3 :class:`~omnidl.models.foundation.vit.VisionTransformer`,
+  ``rope.periods``). omnidl's DINOv2 names are those of the DINOv2 code (``dinov2``).
+
+DINOv3 has no position table (RoPE): ``pos_interp`` is unused. Refused by name: a ConvNeXt (DINOv3's ConvNeXt
+backbones), the DINOv3 ViT-7B, and Depth-Anything-V2 on anything but a DINOv2 encoder (the published models).
 
 A ``.safetensors`` file is read with the ``safetensors`` package (the ``foundation`` extra); ``.pth``/``.bin``/
-``.pt`` with ``torch.load(weights_only=True)`` (a file holding pickled code is refused, never run). Checkpoints with
-register tokens (``*_reg4``) or DINOv3's RoPE are refused with their name: omnidl does not implement them.
+``.pt`` with ``torch.load(weights_only=True)`` (a file holding pickled code is refused, never run).
 """
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import re
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .._weights import load_strict
 
@@ -78,12 +89,12 @@ def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
                               "pip install 'omnidl[foundation]'") from e
         try:
             sd = load_file(str(p), device="cpu")
-        except Exception as e:  # noqa: BLE001 (truncated or not safetensors)
+        except Exception as e:
             raise ValueError(f"{p}: not a readable safetensors file ({str(e).splitlines()[0]})") from e
     else:
         try:
             sd = torch.load(str(p), map_location="cpu", weights_only=True)
-        except Exception as e:  # noqa: BLE001 (truncated, not torch, or pickled code)
+        except Exception as e:
             raise ValueError(f"{p}: could not read it with torch.load(weights_only=True): "
                              f"{str(e).splitlines()[0]}") from e
         for key in ("state_dict", "model"):
@@ -109,42 +120,159 @@ def read_hf_config(path: str | os.PathLike) -> dict[str, Any]:
 # layouts
 # ------------------------------------------------------------------------------------------------------------------
 
+_CONVNEXT_KEYS = ("dwconv", "conv_dw", "depthwise_conv", "downsample_layers.")
+_DINOV3_SUPPORTED = ("vits16", "vits16plus", "vitb16", "vitl16", "vitl16plus", "vith16plus")
+
+
 def detect_layout(sd: Mapping[str, Tensor]) -> str:
-    """``"depth_anything_v2"``, ``"hf_depth_anything"``, ``"dinov2"``, ``"timm"`` or ``"hf_dinov2"``."""
+    """``"depth_anything_v2"``, ``"hf_depth_anything"``, ``"dinov2"``, ``"timm"``, ``"hf_dinov2"`` (DINOv2, with
+    or without registers), ``"dinov3"``, ``"timm_dinov3"`` or ``"hf_dinov3"`` (DINOv3 ViTs); a DINOv3 ConvNeXt is
+    refused by name."""
     keys = list(sd)
-    if any(k.startswith(("register_tokens", "reg_token")) or ".register_tokens" in k for k in keys):
-        raise ValueError("checkpoint has register tokens (DINOv2 *_reg4): not supported by omnidl's ViT")
-    if any("rope" in k or k.startswith("storage_tokens") for k in keys):
-        raise ValueError("checkpoint looks like DINOv3 (RoPE / storage tokens): not supported by omnidl's ViT")
+    if any(any(c in k for c in _CONVNEXT_KEYS) for k in keys):
+        raise ValueError("checkpoint is a ConvNeXt (e.g. a DINOv3 ConvNeXt): omnidl implements only ViT encoders: "
+                         "DINOv2 (with or without registers) and the DINOv3 ViTs " + ", ".join(_DINOV3_SUPPORTED))
     if any(k.startswith("depth_head.") for k in keys) and any(k.startswith("pretrained.") for k in keys):
         return "depth_anything_v2"
     if any(k.startswith("backbone.embeddings.") for k in keys) and any(k.startswith("neck.") for k in keys):
         return "hf_depth_anything"
-    if any(k.startswith(("embeddings.", "dinov2.embeddings.")) for k in keys):
+    if any(k.startswith(("embeddings.", "dinov2.embeddings.", "dinov2_with_registers.embeddings.")) for k in keys):
+        if "embeddings.patch_embeddings.weight" in sd or any(re.match(r"(model\.)?layer\.\d+\.", k) for k in keys):
+            return "hf_dinov3"
         return "hf_dinov2"
+    if "storage_tokens" in sd or "rope_embed.periods" in sd:
+        return "dinov3"
+    if "rope.periods" in sd:
+        return "omnidl_dinov3"
+    if "pos_embed" not in sd and any(re.match(r"blocks\.\d+\.gamma_1$", k) for k in keys):
+        return "timm_dinov3"
     if "pos_embed" in sd and any(k.startswith("blocks.") for k in keys):
-        if "mask_token" in sd or any(".mlp.w12." in k for k in keys) or any(re.match(r"blocks\.\d+\.\d+\.", k)
-                                                                            for k in keys):
+        if ("mask_token" in sd or "register_tokens" in sd or any(".mlp.w12." in k for k in keys)
+                or any(re.match(r"blocks\.\d+\.\d+\.", k) for k in keys)):
             return "dinov2"
         return "timm"
     raise ValueError(f"unrecognised checkpoint layout (first keys: {keys[:5]}); expected Depth-Anything-V2, "
-                     "transformers DepthAnything / Dinov2, DINOv2 or timm ViT weights")
+                     "transformers DepthAnything / Dinov2 / Dinov2WithRegisters / DINOv3ViT, DINOv2 or DINOv3 code, "
+                     "or timm ViT weights")
 
 
 POS_INTERP_OF_LAYOUT = {"depth_anything_v2": "dinov2", "dinov2": "dinov2", "timm": "timm", "hf_dinov2": "hf",
-                        "hf_depth_anything": "hf"}
+                        "hf_depth_anything": "hf", "dinov3": "dinov2", "timm_dinov3": "dinov2",
+                        "hf_dinov3": "dinov2", "omnidl_dinov3": "dinov2"}
+DINOV3_LAYOUTS = ("dinov3", "timm_dinov3", "hf_dinov3", "omnidl_dinov3")
 
 
 def vit_from_dinov2(sd: Mapping[str, Tensor]) -> dict[str, Tensor]:
     """DINOv2 code / timm keys -> :class:`~omnidl.models.foundation.vit.VisionTransformer` keys (drops
-    ``mask_token`` and a classifier ``head``; flattens chunked blocks; ``w12``/``w3`` -> ``fc1``/``fc2``)."""
+    ``mask_token`` and a classifier ``head``; flattens chunked blocks; ``w12``/``w3`` -> ``fc1``/``fc2``).
+
+    Registers: the DINOv2 code's ``register_tokens`` keep their name; timm's ``reg_token`` becomes
+    ``register_tokens`` and timm's class-less ``pos_embed (1, g*g, D)`` (``no_embed_class``, into which timm folded
+    the class token's position when converting) gets a zero class row: ``(1, 1 + g*g, D)``."""
     out = {}
     for k, v in sd.items():
         if k in ("mask_token",) or k.startswith(("head.", "fc_norm.")):
             continue
+        if k == "reg_token":
+            k = "register_tokens"
+        elif k == "pos_embed" and math.isqrt(v.shape[1]) ** 2 == v.shape[1]:
+            v = torch.cat([v.new_zeros(1, 1, v.shape[-1]), v], dim=1)
         k = re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k)
         k = k.replace(".mlp.w12.", ".mlp.fc1.").replace(".mlp.w3.", ".mlp.fc2.")
         out[k] = v
+    return out
+
+
+def _refuse_dinov3_7b(dim: int, what: str) -> None:
+    if dim == 4096:
+        raise ValueError(f"{what}: a DINOv3 ViT-7B (embed_dim 4096) is not supported by omnidl; supported DINOv3 "
+                         f"ViTs: {', '.join(_DINOV3_SUPPORTED)}")
+
+
+def _qkv_bias(q: Tensor | None, k: Tensor | None, v: Tensor | None, what: str) -> Tensor | None:
+    """One ``qkv.bias`` from separate q/k/v biases (absent ones zero); ``None`` when none is given. DINOv3 never
+    uses a k bias (omnidl masks it): a non-zero one is refused."""
+    parts = [q, k, v]
+    if all(p is None for p in parts):
+        return None
+    if k is not None and bool(k.ne(0).any()):
+        raise ValueError(f"{what}: a non-zero key bias is no DINOv3 setting (its k bias is masked to 0); "
+                         "omnidl's DINOv3 attention would ignore it")
+    like = next(p for p in parts if p is not None)
+    return torch.cat([p if p is not None else torch.zeros_like(like) for p in parts])
+
+
+def vit_from_dinov3(sd: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """facebookresearch/dinov3 ``.pth`` keys (``dinov3_vits16_pretrain_lvd1689m-08c60483.pth``, ...) -> ViT keys:
+    ``storage_tokens`` -> ``register_tokens``, ``rope_embed.periods`` -> ``rope.periods`` (float32; the stored
+    periods are used), ``qkv.bias * qkv.bias_mask`` -> ``qkv.bias`` (k third zero), SwiGLU ``w1``/``w2``/``w3`` ->
+    ``fc1`` (``[w1; w2]``)/``fc2``; drops ``mask_token`` and the training-only ``local_cls_norm``. An untied class
+    norm (``cls_norm``) is refused."""
+    dim = int(sd["cls_token"].shape[-1])
+    _refuse_dinov3_7b(dim, "DINOv3 checkpoint")
+    if any(k.startswith("cls_norm.") for k in sd):
+        raise ValueError("DINOv3 checkpoint with an untied class-token norm (cls_norm): not supported by omnidl")
+    out: dict[str, Tensor] = {}
+    glu: dict[str, dict[int, Tensor]] = {}
+    for k, v in sd.items():
+        if k == "mask_token" or k.startswith(("local_cls_norm.", "head.")) or k.endswith(".bias_mask"):
+            continue
+        if k == "storage_tokens":
+            out["register_tokens"] = v
+        elif k == "rope_embed.periods":
+            out["rope.periods"] = v.to(torch.float32)
+        elif k.endswith(".attn.qkv.bias"):
+            mask = sd.get(k + "_mask")
+            if mask is None:
+                mask = torch.ones_like(v)
+                mask[dim:2 * dim] = 0
+            out[k] = v * mask.to(v.dtype)
+        elif (m := re.match(r"(blocks\.\d+\.mlp\.)w([123])\.(weight|bias)$", k)):
+            pre, w, p = m.groups()
+            if w == "3":
+                out[f"{pre}fc2.{p}"] = v
+            else:
+                glu.setdefault(f"{pre}fc1.{p}", {})[int(w) - 1] = v
+        else:
+            out[k] = v
+    for k, pieces in glu.items():
+        if sorted(pieces) != [0, 1]:
+            raise KeyError(f"DINOv3 checkpoint: incomplete SwiGLU projections w1/w2 for {k!r}")
+        out[k] = torch.cat([pieces[0], pieces[1]], 0)
+    return out
+
+
+def vit_from_timm_dinov3(sd: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """timm ``vit_*_patch16_dinov3[_qkvb]`` (``Eva``) keys -> ViT keys: ``reg_token`` -> ``register_tokens``,
+    ``gamma_1``/``gamma_2`` -> ``ls1``/``ls2.gamma``, ``attn.q_bias``/``attn.v_bias`` -> ``attn.qkv.bias`` (k third
+    zero; the non-``qkvb`` models have none), SwiGLU ``fc1_g``/``fc1_x`` -> ``fc1``; drops a classifier ``head``.
+    timm stores no RoPE periods (omnidl computes the same ones)."""
+    _refuse_dinov3_7b(int(sd["cls_token"].shape[-1]), "timm DINOv3 checkpoint")
+    out: dict[str, Tensor] = {}
+    biases: dict[str, dict[str, Tensor]] = {}
+    glu: dict[str, dict[int, Tensor]] = {}
+    for k, v in sd.items():
+        if k.startswith(("head.", "fc_norm.")) or k == "mask_token":
+            continue
+        if k == "reg_token":
+            out["register_tokens"] = v
+        elif (m := re.match(r"(blocks\.\d+)\.gamma_([12])$", k)):
+            out[f"{m.group(1)}.ls{m.group(2)}.gamma"] = v
+        elif (m := re.match(r"(blocks\.\d+\.attn\.)([qkv])_bias$", k)):
+            biases.setdefault(m.group(1) + "qkv.bias", {})[m.group(2)] = v
+        elif (m := re.match(r"(blocks\.\d+\.mlp\.)fc1_([gx])\.(weight|bias)$", k)):
+            glu.setdefault(f"{m.group(1)}fc1.{m.group(3)}", {})[0 if m.group(2) == "g" else 1] = v
+        elif re.match(r"blocks\.\d+\.attn\.(norm|q_norm|k_norm)\.", k):
+            raise ValueError(f"timm DINOv3 checkpoint: {k!r} belongs to an EVA variant (attention norms) that "
+                             "DINOv3 does not have")
+        else:
+            out[k] = v
+    for k, b in biases.items():
+        out[k] = _qkv_bias(b.get("q"), b.get("k"), b.get("v"), "timm DINOv3 checkpoint")
+    for k, pieces in glu.items():
+        if sorted(pieces) != [0, 1]:
+            raise KeyError(f"timm DINOv3 checkpoint: incomplete SwiGLU projections fc1_g/fc1_x for {k!r}")
+        out[k] = torch.cat([pieces[0], pieces[1]], 0)
     return out
 
 
@@ -161,8 +289,9 @@ _HF_GLU = {"mlp.gate_proj.": 0, "mlp.up_proj.": 1}
 
 
 def vit_from_hf(sd: Mapping[str, Tensor], prefix: str = "") -> dict[str, Tensor]:
-    """transformers ``Dinov2Model``/``Dinov2Backbone`` keys (under ``prefix``) -> ViT keys; separate q/k/v (and
-    SwiGLU gate/up) projections are concatenated into ``qkv`` (``fc1``)."""
+    """transformers ``Dinov2Model``/``Dinov2Backbone``/``Dinov2WithRegistersModel`` keys (under ``prefix``) -> ViT
+    keys; separate q/k/v (and SwiGLU gate/up) projections are concatenated into ``qkv`` (``fc1``);
+    ``embeddings.register_tokens`` -> ``register_tokens``."""
     out: dict[str, Tensor] = {}
     parts: dict[str, dict[int, Tensor]] = {}
     for k, v in sd.items():
@@ -171,6 +300,8 @@ def vit_from_hf(sd: Mapping[str, Tensor], prefix: str = "") -> dict[str, Tensor]
         k = k[len(prefix):]
         if k == "embeddings.cls_token":
             out["cls_token"] = v
+        elif k == "embeddings.register_tokens":
+            out["register_tokens"] = v
         elif k == "embeddings.position_embeddings":
             out["pos_embed"] = v
         elif k.startswith("embeddings.patch_embeddings.projection."):
@@ -200,6 +331,62 @@ def vit_from_hf(sd: Mapping[str, Tensor], prefix: str = "") -> dict[str, Tensor]
         if sorted(pieces) != list(range(n)):
             raise KeyError(f"transformers DINOv2 checkpoint: incomplete projections for {k!r}")
         out[k] = torch.cat([pieces[j] for j in range(n)], 0)
+    return out
+
+
+_HF3_LAYER = {"norm1.": "norm1.", "norm2.": "norm2.", "layer_scale1.lambda1": "ls1.gamma",
+              "layer_scale2.lambda1": "ls2.gamma", "attention.o_proj.": "attn.proj.", "mlp.down_proj.": "mlp.fc2."}
+
+
+def vit_from_hf_dinov3(sd: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """transformers ``DINOv3ViTModel``/``DINOv3ViTBackbone`` keys (``facebook/dinov3-vits16-pretrain-lvd1689m``:
+    ``layer.i.*``; transformers >= 5: ``model.layer.i.*``) -> ViT keys: ``q_proj``/``k_proj``/``v_proj`` ->
+    ``qkv`` (absent biases zero; ``key_bias`` is off in every published model), ``up_proj`` -> ``fc1`` (plain MLP)
+    or ``[gate_proj; up_proj]`` -> ``fc1`` (SwiGLU), ``down_proj`` -> ``fc2``, ``layer_scale{1,2}.lambda1`` ->
+    ``ls{1,2}.gamma``. transformers stores no RoPE periods (omnidl computes the same ones)."""
+    what = "transformers DINOv3 checkpoint"
+    _refuse_dinov3_7b(int(sd["embeddings.cls_token"].shape[-1]), what)
+    out: dict[str, Tensor] = {}
+    layers: dict[str, dict[str, Tensor]] = {}
+    for k, v in sd.items():
+        if k in ("embeddings.mask_token",):
+            continue
+        if k == "embeddings.cls_token":
+            out["cls_token"] = v
+        elif k == "embeddings.register_tokens":
+            out["register_tokens"] = v
+        elif (m := re.match(r"embeddings\.patch_embeddings\.(weight|bias)$", k)):
+            out["patch_embed.proj." + m.group(1)] = v
+        elif (m := re.match(r"norm\.(weight|bias)$", k)):
+            out["norm." + m.group(1)] = v
+        elif (m := re.match(r"(?:model\.)?layer\.(\d+)\.(.+)$", k)):
+            layers.setdefault(m.group(1), {})[m.group(2)] = v
+        else:
+            raise KeyError(f"{what}: unexpected key {k!r}")
+    for i, lay in layers.items():
+        b = f"blocks.{i}."
+        for p in ("weight", "bias"):
+            qkv = [lay.pop(f"attention.{n}_proj.{p}", None) for n in "qkv"]
+            if p == "weight":
+                if any(t is None for t in qkv):
+                    raise KeyError(f"{what}: layer {i} lacks one of q_proj/k_proj/v_proj weights")
+                out[b + "attn.qkv.weight"] = torch.cat(qkv, 0)
+            elif (bias := _qkv_bias(*qkv, what)) is not None:
+                out[b + "attn.qkv.bias"] = bias
+            gate, up = lay.pop(f"mlp.gate_proj.{p}", None), lay.pop(f"mlp.up_proj.{p}", None)
+            if gate is not None and up is not None:
+                out[b + f"mlp.fc1.{p}"] = torch.cat([gate, up], 0)
+            elif up is not None:
+                out[b + f"mlp.fc1.{p}"] = up
+            elif gate is not None:
+                raise KeyError(f"{what}: layer {i} has mlp.gate_proj without mlp.up_proj")
+        for rest, v in lay.items():
+            for pat, rep in _HF3_LAYER.items():
+                if rest.startswith(pat):
+                    out[b + rep + rest[len(pat):]] = v
+                    break
+            else:
+                raise KeyError(f"{what}: unexpected key {'layer.' + i + '.' + rest!r}")
     return out
 
 
@@ -258,9 +445,12 @@ def depth_anything_from_hf(sd: Mapping[str, Tensor]) -> dict[str, Tensor]:
 
 
 def vit_state_dict(sd: Mapping[str, Tensor]) -> tuple[dict[str, Tensor], str]:
-    """A ViT state dict in omnidl's names from any supported layout, and the layout's ``pos_interp``.
+    """A ViT state dict in omnidl's names from any supported layout, and how its learned position embedding is
+    resampled (``pos_interp``; DINOv2 with registers from the DINOv2 code or transformers: ``"dinov2_reg"``).
 
-    A Depth-Anything checkpoint gives its encoder (``pretrained.*`` / ``backbone.*``)."""
+    A Depth-Anything checkpoint gives its encoder (``pretrained.*`` / ``backbone.*``). A DINOv3 state dict holds
+    ``rope.periods`` only when the file stores them (the official ``.pth``); :func:`load_vit` fills them in
+    otherwise."""
     layout = detect_layout(sd)
     if layout == "depth_anything_v2":
         full = depth_anything_from_original(sd)
@@ -268,11 +458,87 @@ def vit_state_dict(sd: Mapping[str, Tensor]) -> tuple[dict[str, Tensor], str]:
     elif layout == "hf_depth_anything":
         vit = vit_from_hf(sd, prefix="backbone.")
     elif layout == "hf_dinov2":
-        prefix = "dinov2." if any(k.startswith("dinov2.") for k in sd) else ""
+        prefix = next((p for p in ("dinov2.", "dinov2_with_registers.") if any(k.startswith(p) for k in sd)), "")
         vit = vit_from_hf({k: v for k, v in sd.items() if not k.startswith("classifier.")}, prefix=prefix)
+    elif layout == "dinov3":
+        vit = vit_from_dinov3(sd)
+    elif layout == "timm_dinov3":
+        vit = vit_from_timm_dinov3(sd)
+    elif layout == "hf_dinov3":
+        vit = vit_from_hf_dinov3(sd)
+    elif layout == "omnidl_dinov3":
+        vit = dict(sd)
     else:
         vit = vit_from_dinov2(sd)
-    return vit, POS_INTERP_OF_LAYOUT[layout]
+    interp = POS_INTERP_OF_LAYOUT[layout]
+    if layout in ("dinov2", "hf_dinov2") and "register_tokens" in vit:
+        interp = "dinov2_reg"
+    return vit, interp
+
+
+#: transformers ``config.json`` fields that omnidl's ViT fixes: field -> {family: required value}
+_HF_FIXED = {"layer_norm_eps": {"dinov2": 1e-6, "dinov3": 1e-5}, "rope_theta": {"dinov3": 100.0},
+             "key_bias": {"dinov3": False}}
+
+
+def read_vit(path: str | os.PathLike) -> tuple[dict[str, Tensor], str]:
+    """:func:`vit_state_dict` of the file at ``path``; for a transformers checkpoint the settings of its
+    ``config.json`` that the weights do not show (activation, LayerNorm eps, RoPE base) are checked against what
+    omnidl's ViT computes, with an error naming the file, field, value and what was expected."""
+    file = find_weights(path)
+    vit, interp = vit_state_dict(read_state_dict(file))
+    cfg = read_hf_config(file)
+    if cfg.get("model_type") in ("dinov2", "dinov2_with_registers", "dinov3_vit"):
+        family = "dinov3" if cfg["model_type"] == "dinov3_vit" else "dinov2"
+        fc1, fc2 = vit["blocks.0.mlp.fc1.weight"], vit["blocks.0.mlp.fc2.weight"]
+        swiglu = int(fc1.shape[0]) == 2 * int(fc2.shape[1])
+        expected: dict[str, Any] = {k: v[family] for k, v in _HF_FIXED.items() if family in v}
+        if not (family == "dinov2" and swiglu):  # transformers' DINOv2 SwiGLU is SiLU whatever hidden_act says
+            expected["hidden_act"] = "silu" if swiglu else "gelu"
+        for field, want in expected.items():
+            got = cfg.get(field, want)
+            if got != want and not (isinstance(want, float) and isinstance(got, (int, float))
+                                    and abs(got - want) <= 1e-12 * max(1.0, abs(want))):
+                raise ValueError(f"{file.parent / 'config.json'}: {field} = {got!r}, but omnidl's {family} ViT "
+                                 f"computes {want!r} for these weights (a configuration no published model uses)")
+    return vit, interp
+
+
+def vit_config_of(vit_sd: Mapping[str, Tensor], num_heads: int | None = None) -> dict[str, Any]:
+    """:class:`~omnidl.models.foundation.vit.VisionTransformer` arguments that fit a ViT state dict in omnidl's
+    names (from :func:`vit_state_dict`): family, widths, depth, FFN, patch size, registers, qkv bias, and the
+    pre-training grid of a learned position embedding. ``num_heads`` is not stored in weights: default
+    ``embed_dim // 64`` (the head width of every published DINOv2 / DINOv3 model)."""
+    dim = int(vit_sd["cls_token"].shape[-1])
+    depth = 1 + max(int(k.split(".")[1]) for k in vit_sd if k.startswith("blocks."))
+    fc1, fc2 = vit_sd["blocks.0.mlp.fc1.weight"], vit_sd["blocks.0.mlp.fc2.weight"]
+    hidden = int(fc2.shape[1])
+    patch = int(vit_sd["patch_embed.proj.weight"].shape[-1])
+    regs = int(vit_sd["register_tokens"].shape[1]) if "register_tokens" in vit_sd else 0
+    rope = "pos_embed" not in vit_sd
+    cfg: dict[str, Any] = {
+        "size": None, "family": "dinov3" if rope else "dinov2", "embed_dim": dim, "depth": depth,
+        "num_heads": int(num_heads) if num_heads else max(1, dim // 64),
+        "ffn": "swiglu" if int(fc1.shape[0]) == 2 * hidden else "mlp", "ffn_hidden": hidden, "patch_size": patch,
+        "num_registers": regs, "qkv_bias": "blocks.0.attn.qkv.bias" in vit_sd}
+    if not rope:
+        cfg["img_size"] = patch * math.isqrt(int(vit_sd["pos_embed"].shape[1]) - 1)
+    return cfg
+
+
+def load_vit(model: nn.Module, vit_sd: Mapping[str, Tensor], what: str) -> None:
+    """:func:`load_strict` of a ViT state dict from :func:`vit_state_dict` into ``model``
+    (:class:`~omnidl.models.foundation.vit.VisionTransformer`); RoPE periods that the file does not store (timm,
+    transformers) are the model's own, computed as those libraries do."""
+    sd = dict(vit_sd)
+    rope = getattr(model, "rope", None)
+    if rope is not None and "rope.periods" not in sd:
+        from .rope import rope_periods
+        sd["rope.periods"] = rope_periods(rope.head_dim, rope.base)
+    if rope is None and "rope.periods" in sd:
+        raise ValueError(f"{what}: holds a DINOv3 (RoPE) ViT, the model is a {getattr(model, 'family', '?')} ViT "
+                         "with a learned position embedding")
+    load_strict(model, sd, what)
 
 
 def vit_size_of(vit_sd: Mapping[str, Tensor]) -> str | None:
@@ -348,6 +614,7 @@ def load_depth_anything(path: str | os.PathLike, encoder: Any = "vits", max_dept
     return model
 
 
-__all__ = ["read_state_dict", "read_hf_config", "find_weights", "detect_layout", "vit_from_dinov2", "vit_from_hf",
-           "depth_anything_from_original", "depth_anything_from_hf", "vit_state_dict", "vit_size_of", "load_strict",
-           "load_depth_anything"]
+__all__ = ["DINOV3_LAYOUTS", "depth_anything_from_hf", "depth_anything_from_original", "detect_layout", "find_weights",
+           "load_depth_anything", "load_strict", "load_vit", "read_hf_config", "read_state_dict", "read_vit",
+           "vit_config_of", "vit_from_dinov2", "vit_from_dinov3", "vit_from_hf", "vit_from_hf_dinov3",
+           "vit_from_timm_dinov3", "vit_size_of", "vit_state_dict"]

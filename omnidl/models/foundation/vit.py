@@ -1,45 +1,73 @@
-"""A DINOv2 vision transformer in plain PyTorch, with the parameter names of DINOv2 / timm.
+"""DINOv2 and DINOv3 vision transformers in plain PyTorch, with the parameter names of DINOv2 / timm.
 
-Architecture (Oquab et al., "DINOv2", TMLR 2024; the ``dinov2`` code that Depth-Anything-V2 ships, and timm's
-``vit_*_patch14_dinov2``)::
+Architecture (Oquab et al., "DINOv2", TMLR 2024, and its ``*_reg`` variants of Darcet et al., "Vision Transformers
+Need Registers", ICLR 2024; Siméoni et al., "DINOv3", arXiv:2508.10104; the ``dinov2`` code that Depth-Anything-V2
+ships, facebookresearch/dinov3, timm's ``vit_*_patch14_dinov2`` / ``vit_*_patch14_reg4_dinov2`` /
+``vit_*_patch16_dinov3``)::
 
-    image (B, 3, H, W), ImageNet-normalised, H and W multiples of the patch size p (14)
+    image (B, 3, H, W), ImageNet-normalised, H and W multiples of the patch size p (DINOv2 14, DINOv3 16)
     patch_embed.proj   Conv2d(3, D, p, stride p) -> (B, h*w, D) tokens, row-major (h = H/p, w = W/p)
-    cls_token          (1, 1, D) prepended;  pos_embed (1, 1 + g*g, D) added (g = img_size / p, resampled to h x w)
-    blocks.i           x = x + ls1(attn(norm1(x)));  x = x + ls2(mlp(norm2(x)))   (LayerNorm eps 1e-6)
-                       attn: qkv Linear(D, 3D), softmax(q k^T / sqrt(D/heads)) v, proj Linear(D, D)
-                       mlp: fc1 Linear(D, 4D), GELU (erf), fc2 Linear(4D, D)  — or SwiGLU (ViT-g): fc1 (D, 2F),
+    tokens             [cls_token, register_tokens (R), patches]  -> (B, 1 + R + h*w, D)
+      learned ("DINOv2") pos_embed (1, 1 + g*g, D), resampled to h x w, is added to [cls, patches] before the
+                         registers are inserted (registers get no position; g = img_size / p)
+      "rope" (DINOv3)    no pos_embed: every attention rotates the patch tokens' q and k (:mod:`.rope`)
+    blocks.i           x = x + ls1(attn(norm1(x)));  x = x + ls2(mlp(norm2(x)))   (LayerNorm, eps ``norm_eps``)
+                       attn: qkv Linear(D, 3D), softmax(q k^T / sqrt(D/heads)) v, proj Linear(D, D);
+                       DINOv3 masks the k third of the qkv bias to zero (``mask_k_bias``)
+                       mlp: fc1 Linear(D, F), GELU (erf), fc2 Linear(F, D)  — or SwiGLU: fc1 (D, 2F),
                        silu(x1) * x2, fc2 (F, D)
     norm               final LayerNorm, applied to every intermediate output that is returned
 
-Sizes (:data:`VIT_SIZES`): ``vits`` 384/12/6, ``vitb`` 768/12/12, ``vitl`` 1024/24/16, ``vitg`` 1536/40/24 (SwiGLU).
+Sizes. DINOv2 (:data:`VIT_SIZES`, patch 14, 0 or 4 registers, LayerNorm eps 1e-6): ``vits`` 384/12/6,
+``vitb`` 768/12/12, ``vitl`` 1024/24/16, ``vitg`` 1536/40/24 (SwiGLU). DINOv3 (:data:`DINOV3_SIZES`, the names of
+facebookresearch/dinov3's ``hub/backbones.py``; patch 16, RoPE base 100, 4 registers ("storage tokens"), LayerNorm
+eps 1e-5, qkv bias with a masked k part): ``vits16`` 384/12/6, ``vits16plus`` 384/12/6 (SwiGLU, ratio 6),
+``vitb16`` 768/12/12, ``vitl16`` 1024/24/16, ``vitl16plus`` 1024/24/16 (SwiGLU, 6), ``vith16plus`` 1280/32/20
+(SwiGLU, 6). The DINOv3 7B (4096 wide, untied class-token norms) is not provided.
 
-The position embedding is resampled to the token grid exactly as the implementation whose weights are loaded does it
-(``pos_interp``), since the three references differ in their last digits:
+The learned position embedding is resampled to the token grid exactly as the implementation whose weights are loaded
+does it (``pos_interp``), since the references differ in their last digits:
 
 * ``"dinov2"`` (the DINOv2 / Depth-Anything-V2 code): bicubic with ``scale_factor = (h + 0.1) / g`` (and ``w``),
   no anti-aliasing; unchanged when ``h * w == g * g`` and ``H == W``.
+* ``"dinov2_reg"`` (the DINOv2 code for its ``*_reg`` models, which set ``interpolate_offset=0`` and
+  ``interpolate_antialias=True``; transformers' ``Dinov2WithRegistersModel``): bicubic to ``size = (h, w)`` with
+  anti-aliasing; same early exit as ``"dinov2"``.
 * ``"hf"`` (transformers' ``Dinov2Model``): bicubic to ``size = (h, w)``, no anti-aliasing; same early exit.
 * ``"timm"`` (``resample_abs_pos_embed``): bicubic to ``size = (h, w)`` with ``antialias=True``; unchanged when
   ``(h, w) == (g, g)``.
 
-Register tokens (``*_reg4_dinov2``) and DINOv3 (RoPE) are not implemented; their checkpoints are refused by name in
-:mod:`omnidl.models.foundation.convert`.
+A RoPE model (DINOv3) has no table to resample: ``pos_interp`` is unused; timm, transformers and the official code
+compute the same RoPE (their float32 periods differ in the last bits; the official checkpoint stores its own).
 """
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
-import torch.nn as nn
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 
-#: name -> (embed_dim, depth, num_heads, ffn)
+from .rope import RopeEmbedding, apply_rope
+
+#: DINOv2: name -> (embed_dim, depth, num_heads, ffn)
 VIT_SIZES = {"vits": (384, 12, 6, "mlp"), "vitb": (768, 12, 12, "mlp"), "vitl": (1024, 24, 16, "mlp"),
              "vitg": (1536, 40, 24, "swiglu")}
-POS_INTERP = ("dinov2", "hf", "timm")
+#: DINOv3 (facebookresearch/dinov3 ``hub/backbones.py``): name -> (embed_dim, depth, num_heads, ffn, mlp_ratio)
+DINOV3_SIZES = {"vits16": (384, 12, 6, "mlp", 4.0), "vits16plus": (384, 12, 6, "swiglu", 6.0),
+                "vitb16": (768, 12, 12, "mlp", 4.0), "vitl16": (1024, 24, 16, "mlp", 4.0),
+                "vitl16plus": (1024, 24, 16, "swiglu", 6.0), "vith16plus": (1280, 32, 20, "swiglu", 6.0)}
+POS_INTERP = ("dinov2", "dinov2_reg", "hf", "timm")
+POS_EMBED = ("learned", "rope")
+#: the architecture settings of each family (what :class:`VisionTransformer` uses for an argument left at ``None``)
+FAMILY_DEFAULTS = {
+    "dinov2": {"patch_size": 14, "img_size": 518, "mlp_ratio": 4.0, "pos_embed": "learned", "num_registers": 0,
+               "qkv_bias": True, "mask_k_bias": False, "norm_eps": 1e-6, "layer_scale": 1.0},
+    "dinov3": {"patch_size": 16, "img_size": 224, "mlp_ratio": 4.0, "pos_embed": "rope", "num_registers": 4,
+               "qkv_bias": True, "mask_k_bias": True, "norm_eps": 1e-5, "layer_scale": 1e-5},
+}
 
 torch.fx.wrap("resample_pos_embed")
 
@@ -64,7 +92,7 @@ def resample_pos_embed(pos_embed: Tensor, height: int, width: int, patch: int, m
         grid = F.interpolate(grid, scale_factor=((gh + 0.1) / g, (gw + 0.1) / g), mode="bicubic", antialias=False)
     elif mode == "hf":
         grid = F.interpolate(grid, size=(gh, gw), mode="bicubic", align_corners=False)
-    elif mode == "timm":
+    elif mode in ("timm", "dinov2_reg"):
         grid = F.interpolate(grid, size=(gh, gw), mode="bicubic", antialias=True)
     else:
         raise ValueError(f"pos_interp must be one of {POS_INTERP}, got {mode!r}")
@@ -85,20 +113,36 @@ class PatchEmbed(nn.Module):
 
 
 class Attention(nn.Module):
-    """Multi-head self-attention with a fused ``qkv`` projection (DINOv2 / timm layout)."""
+    """Multi-head self-attention with a fused ``qkv`` projection (DINOv2 / DINOv3 / timm layout).
 
-    def __init__(self, dim: int, num_heads: int, qkv_bias: bool = True) -> None:
+    ``mask_k_bias``: the k third of the qkv bias is multiplied by 0 (DINOv3's ``LinearKMaskedBias``; it stays a
+    parameter so that the published ``qkv.bias`` loads as it is). ``rope``: ``(sin, cos)`` of the patch tokens,
+    which are the last ``sin.shape[0]`` tokens."""
+
+    def __init__(self, dim: int, num_heads: int, qkv_bias: bool = True, mask_k_bias: bool = False) -> None:
         super().__init__()
         if dim % num_heads:
             raise ValueError(f"ViT: embed_dim {dim} is not divisible by num_heads {num_heads}")
         self.num_heads = int(num_heads)
         self.qkv = nn.Linear(dim, 3 * dim, bias=qkv_bias)
         self.proj = nn.Linear(dim, dim)
+        self.mask_k_bias = bool(mask_k_bias and qkv_bias)
+        if self.mask_k_bias:
+            mask = torch.ones(3 * dim)
+            mask[dim:2 * dim] = 0
+            self.register_buffer("bias_mask", mask, persistent=False)
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor, rope: tuple[Tensor, Tensor] | None = None) -> Tensor:
         b, n, c = x.shape
-        qkv = self.qkv(x).reshape(b, n, 3, self.num_heads, c // self.num_heads).permute(2, 0, 3, 1, 4)
-        y = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2])
+        if self.mask_k_bias:
+            qkv = F.linear(x, self.qkv.weight, self.qkv.bias * self.bias_mask.to(self.qkv.bias.dtype))
+        else:
+            qkv = self.qkv(x)
+        qkv = qkv.reshape(b, n, 3, self.num_heads, c // self.num_heads).permute(2, 0, 3, 1, 4)
+        q, k, v = qkv[0], qkv[1], qkv[2]
+        if rope is not None:
+            q, k = apply_rope(q, rope[0], rope[1]), apply_rope(k, rope[0], rope[1])
+        y = F.scaled_dot_product_attention(q, k, v)
         return self.proj(y.transpose(1, 2).reshape(b, n, c))
 
 
@@ -126,13 +170,19 @@ class Mlp(nn.Module):
         return self.fc2(self.act(self.fc1(x)))
 
 
+def swiglu_hidden(hidden: int) -> int:
+    """SwiGLU width of a nominal ``hidden = int(D * mlp_ratio)``: ``8 * ceil(int(2/3 * hidden) / 8)`` (DINOv2's
+    ``SwiGLUFFNFused``, DINOv3's ``SwiGLUFFN(align_to=8)``)."""
+    return (int(hidden * 2 / 3) + 7) // 8 * 8
+
+
 class SwiGLU(nn.Module):
     """``fc2(silu(x1) * x2)`` with ``(x1, x2) = fc1(x).chunk(2)`` (DINOv2's ``SwiGLUFFNFused``, timm's
-    ``SwiGLUPacked``); hidden width ``F = 8 * ceil((2/3 * 4D) / 8)`` as DINOv2."""
+    ``SwiGLUPacked``; DINOv3's ``w1``/``w2``/``w3`` and timm's ``fc1_g``/``fc1_x``/``fc2`` are packed into
+    ``fc1``/``fc2`` by the converters) with hidden width ``F``."""
 
     def __init__(self, dim: int, hidden: int) -> None:
         super().__init__()
-        hidden = (int(hidden * 2 / 3) + 7) // 8 * 8
         self.fc1 = nn.Linear(dim, 2 * hidden)
         self.act = nn.SiLU()
         self.fc2 = nn.Linear(hidden, dim)
@@ -143,100 +193,182 @@ class SwiGLU(nn.Module):
 
 
 class Block(nn.Module):
-    """Pre-norm transformer block with layer scale."""
+    """Pre-norm transformer block with layer scale; ``hidden``: the FFN width ``F``."""
 
-    def __init__(self, dim: int, num_heads: int, mlp_ratio: float = 4.0, ffn: str = "mlp",
-                 layer_scale: float | None = 1.0, eps: float = 1e-6) -> None:
+    def __init__(self, dim: int, num_heads: int, hidden: int, ffn: str = "mlp", layer_scale: float = 1.0,
+                 eps: float = 1e-6, qkv_bias: bool = True, mask_k_bias: bool = False) -> None:
         super().__init__()
         self.norm1 = nn.LayerNorm(dim, eps=eps)
-        self.attn = Attention(dim, num_heads)
-        self.ls1 = LayerScale(dim, layer_scale) if layer_scale is not None else nn.Identity()
+        self.attn = Attention(dim, num_heads, qkv_bias=qkv_bias, mask_k_bias=mask_k_bias)
+        self.ls1 = LayerScale(dim, layer_scale)
         self.norm2 = nn.LayerNorm(dim, eps=eps)
-        hidden = int(dim * mlp_ratio)
         if ffn == "mlp":
             self.mlp: nn.Module = Mlp(dim, hidden)
         elif ffn == "swiglu":
             self.mlp = SwiGLU(dim, hidden)
         else:
             raise ValueError(f"ViT: ffn must be 'mlp' or 'swiglu', got {ffn!r}")
-        self.ls2 = LayerScale(dim, layer_scale) if layer_scale is not None else nn.Identity()
+        self.ls2 = LayerScale(dim, layer_scale)
 
-    def forward(self, x: Tensor) -> Tensor:
-        x = x + self.ls1(self.attn(self.norm1(x)))
+    def forward(self, x: Tensor, rope: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        x = x + self.ls1(self.attn(self.norm1(x), rope))
         return x + self.ls2(self.mlp(self.norm2(x)))
 
 
+def _resolve(size: str | None, family: str | None, given: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """The family and full architecture settings: explicit arguments > ``size`` > the family's defaults."""
+    preset: dict[str, Any] = {}
+    if size is not None:
+        if size in VIT_SIZES:
+            d, n, h, f = VIT_SIZES[size]
+            preset, fam = {"embed_dim": d, "depth": n, "num_heads": h, "ffn": f}, "dinov2"
+        elif size in DINOV3_SIZES:
+            d, n, h, f, r = DINOV3_SIZES[size]
+            preset, fam = {"embed_dim": d, "depth": n, "num_heads": h, "ffn": f, "mlp_ratio": r}, "dinov3"
+        else:
+            raise ValueError(f"ViT: unknown size {size!r}; choose one of {sorted(VIT_SIZES)} (DINOv2) or "
+                             f"{sorted(DINOV3_SIZES)} (DINOv3), or give embed_dim/depth/num_heads")
+        if family is not None and family != fam:
+            raise ValueError(f"ViT: size {size!r} is a {fam} size, not {family}")
+        family = fam
+    family = family or "dinov2"
+    if family not in FAMILY_DEFAULTS:
+        raise ValueError(f"ViT: family must be one of {sorted(FAMILY_DEFAULTS)}, got {family!r}")
+    cfg = {**FAMILY_DEFAULTS[family], "ffn": "mlp", **preset}
+    cfg.update({k: v for k, v in given.items() if v is not None})
+    return family, cfg
+
+
 class VisionTransformer(nn.Module):
-    """DINOv2 ViT (see the module docstring). Input: ImageNet-normalised ``(B, 3, H, W)``, sides multiples of
-    ``patch_size``; :meth:`intermediate` returns normalised token maps of chosen blocks.
+    """DINOv2 / DINOv3 ViT (see the module docstring). Input: ImageNet-normalised ``(B, 3, H, W)``, sides multiples
+    of ``patch_size``; :meth:`intermediate` returns normalised token maps of chosen blocks.
+
+    Every architecture argument left at ``None`` comes from ``size``, else from the ``family``'s defaults
+    (:data:`FAMILY_DEFAULTS`).
 
     Args:
-        size: ``"vits"``/``"vitb"``/``"vitl"``/``"vitg"``, or ``None`` with ``embed_dim``/``depth``/``num_heads``
-            given (tiny test configurations).
-        patch_size: 14 for DINOv2.
-        img_size: the pre-training size setting the position-embedding grid (518 -> 37 x 37).
-        pos_interp: ``"dinov2"``, ``"hf"`` or ``"timm"`` (how ``pos_embed`` is resampled).
+        size: a key of :data:`VIT_SIZES` (DINOv2) or :data:`DINOV3_SIZES` (DINOv3; sets ``family="dinov3"``), or
+            ``None`` with ``embed_dim``/``depth``/``num_heads`` given (tiny test configurations).
+        family: ``"dinov2"`` (default) or ``"dinov3"``.
+        ffn: ``"mlp"`` or ``"swiglu"``; ``mlp_ratio``: nominal FFN width ``int(D * mlp_ratio)`` (SwiGLU: reduced by
+            :func:`swiglu_hidden`); ``ffn_hidden``: the FFN width ``F`` itself (overrides ``mlp_ratio``).
+        patch_size: 14 (DINOv2) or 16 (DINOv3).
+        img_size: the pre-training size setting the learned position-embedding grid (518 -> 37 x 37).
+        pos_embed: ``"learned"`` (DINOv2) or ``"rope"`` (DINOv3).
+        num_registers: register tokens after the class token (DINOv2 ``*_reg``: 4; DINOv3: 4).
+        qkv_bias, mask_k_bias: a qkv bias; its k third multiplied by 0 (DINOv3).
+        norm_eps: LayerNorm epsilon (DINOv2 1e-6, DINOv3 1e-5).
+        layer_scale: initial layer-scale value (DINOv2 1.0, DINOv3 1e-5; loaded weights replace it).
+        pos_interp: ``"dinov2"``, ``"dinov2_reg"``, ``"hf"`` or ``"timm"`` (how a learned ``pos_embed`` is
+            resampled).
+        rope_base, rope_rescale: RoPE period base and training-time coordinate rescaling (:mod:`.rope`).
     """
 
-    def __init__(self, size: str | None = "vits", *, embed_dim: int | None = None, depth: int | None = None,
-                 num_heads: int | None = None, ffn: str | None = None, patch_size: int = 14, img_size: int = 518,
-                 mlp_ratio: float = 4.0, pos_interp: str = "dinov2", layer_scale: float | None = 1.0) -> None:
+    def __init__(self, size: str | None = "vits", *, family: str | None = None, embed_dim: int | None = None,
+                 depth: int | None = None, num_heads: int | None = None, ffn: str | None = None,
+                 patch_size: int | None = None, img_size: int | None = None, mlp_ratio: float | None = None,
+                 ffn_hidden: int | None = None, pos_embed: str | None = None, num_registers: int | None = None,
+                 qkv_bias: bool | None = None, mask_k_bias: bool | None = None, norm_eps: float | None = None,
+                 layer_scale: float | None = None, pos_interp: str = "dinov2", rope_base: float = 100.0,
+                 rope_rescale: float | None = None) -> None:
         super().__init__()
-        if size is not None:
-            if size not in VIT_SIZES:
-                raise ValueError(f"ViT: unknown size {size!r}; choose one of {sorted(VIT_SIZES)} or give "
-                                 "embed_dim/depth/num_heads")
-            d0, n0, h0, f0 = VIT_SIZES[size]
-            embed_dim, depth, num_heads, ffn = embed_dim or d0, depth or n0, num_heads or h0, ffn or f0
-        if not (embed_dim and depth and num_heads):
+        family, cfg = _resolve(size, family, {
+            "embed_dim": embed_dim, "depth": depth, "num_heads": num_heads, "ffn": ffn, "patch_size": patch_size,
+            "img_size": img_size, "mlp_ratio": mlp_ratio, "pos_embed": pos_embed, "num_registers": num_registers,
+            "qkv_bias": qkv_bias, "mask_k_bias": mask_k_bias, "norm_eps": norm_eps, "layer_scale": layer_scale})
+        if not (cfg.get("embed_dim") and cfg.get("depth") and cfg.get("num_heads")):
             raise ValueError("ViT: give size= or all of embed_dim=, depth=, num_heads=")
         if pos_interp not in POS_INTERP:
             raise ValueError(f"ViT: pos_interp must be one of {POS_INTERP}, got {pos_interp!r}")
-        if img_size % patch_size:
-            raise ValueError(f"ViT: img_size {img_size} is not a multiple of patch_size {patch_size}")
-        self.embed_dim, self.depth, self.num_heads = int(embed_dim), int(depth), int(num_heads)
-        self.patch_size, self.pos_interp = int(patch_size), pos_interp
-        grid = img_size // patch_size
-        self.patch_embed = PatchEmbed(patch_size, self.embed_dim)
+        if cfg["pos_embed"] not in POS_EMBED:
+            raise ValueError(f"ViT: pos_embed must be one of {POS_EMBED}, got {cfg['pos_embed']!r}")
+        self.family = family
+        self.embed_dim, self.depth, self.num_heads = int(cfg["embed_dim"]), int(cfg["depth"]), int(cfg["num_heads"])
+        self.patch_size, self.pos_interp = int(cfg["patch_size"]), pos_interp
+        self.num_registers = int(cfg["num_registers"])
+        self.num_prefix_tokens = 1 + self.num_registers
+        self.use_rope = cfg["pos_embed"] == "rope"
+        self.patch_embed = PatchEmbed(self.patch_size, self.embed_dim)
         self.cls_token = nn.Parameter(torch.zeros(1, 1, self.embed_dim))
-        self.pos_embed = nn.Parameter(torch.zeros(1, 1 + grid * grid, self.embed_dim))
-        self.blocks = nn.ModuleList(Block(self.embed_dim, self.num_heads, mlp_ratio, ffn or "mlp", layer_scale)
-                                    for _ in range(self.depth))
-        self.norm = nn.LayerNorm(self.embed_dim, eps=1e-6)
-        nn.init.trunc_normal_(self.pos_embed, std=0.02)
-        nn.init.normal_(self.cls_token, std=1e-6)
+        self.register_tokens = (nn.Parameter(torch.zeros(1, self.num_registers, self.embed_dim))
+                                if self.num_registers else None)
+        if self.use_rope:
+            if self.embed_dim % (4 * self.num_heads):
+                raise ValueError(f"ViT: RoPE needs embed_dim ({self.embed_dim}) divisible by 4 * num_heads "
+                                 f"({4 * self.num_heads})")
+            self.pos_embed = None
+            self.rope = RopeEmbedding(self.embed_dim // self.num_heads, rope_base, rope_rescale)
+        else:
+            img = int(cfg["img_size"])
+            if img % self.patch_size:
+                raise ValueError(f"ViT: img_size {img} is not a multiple of patch_size {self.patch_size}")
+            grid = img // self.patch_size
+            self.pos_embed = nn.Parameter(torch.zeros(1, 1 + grid * grid, self.embed_dim))
+            self.rope = None
+            nn.init.trunc_normal_(self.pos_embed, std=0.02)
+        if ffn_hidden is not None:
+            hidden = int(ffn_hidden)
+        else:
+            hidden = int(self.embed_dim * float(cfg["mlp_ratio"]))
+            hidden = swiglu_hidden(hidden) if cfg["ffn"] == "swiglu" else hidden
+        self.blocks = nn.ModuleList(
+            Block(self.embed_dim, self.num_heads, hidden, cfg["ffn"], float(cfg["layer_scale"]),
+                  float(cfg["norm_eps"]), bool(cfg["qkv_bias"]), bool(cfg["mask_k_bias"]))
+            for _ in range(self.depth))
+        self.norm = nn.LayerNorm(self.embed_dim, eps=float(cfg["norm_eps"]))
+        nn.init.normal_(self.cls_token, std=1e-6 if family == "dinov2" else 0.02)
+        if self.register_tokens is not None:
+            nn.init.normal_(self.register_tokens, std=1e-6 if family == "dinov2" else 0.02)
 
-    def tokens(self, x: Tensor) -> Tensor:
-        """``(B, 3, H, W) -> (B, 1 + h*w, D)``: class token + patch tokens with position embedding."""
+    def tokens(self, x: Tensor) -> tuple[Tensor, tuple[Tensor, Tensor] | None]:
+        """``(B, 3, H, W) -> (B, 1 + R + h*w, D)``: class token, register tokens and patch tokens (with the learned
+        position embedding), and the RoPE ``(sin, cos)`` of the patch grid (``None`` without RoPE)."""
         h, w = x.shape[-2], x.shape[-1]
         t = self.patch_embed(x)
-        t = torch.cat([self.cls_token.expand(t.shape[0], -1, -1), t], dim=1)
-        return t + resample_pos_embed(self.pos_embed, h, w, self.patch_size, self.pos_interp)
+        cls = self.cls_token.expand(t.shape[0], -1, -1)
+        rope = None
+        if self.pos_embed is not None:
+            t = torch.cat([cls, t], dim=1) + resample_pos_embed(self.pos_embed, h, w, self.patch_size,
+                                                                self.pos_interp)
+            if self.register_tokens is not None:
+                t = torch.cat([t[:, :1], self.register_tokens.expand(t.shape[0], -1, -1), t[:, 1:]], dim=1)
+        else:
+            parts = [cls] if self.register_tokens is None else [cls, self.register_tokens.expand(t.shape[0], -1, -1)]
+            t = torch.cat(parts + [t], dim=1)
+        if self.rope is not None:
+            rope = self.rope(h // self.patch_size, w // self.patch_size)
+        return t, rope
 
     def intermediate(self, x: Tensor, indices: Sequence[int]) -> list[tuple[Tensor, Tensor]]:
         """``[(patch tokens (B, h*w, D), class token (B, D)), ...]`` after block ``i`` for ``i`` in ``indices``,
-        each through the final ``norm`` (DINOv2's ``get_intermediate_layers(..., norm=True)``). Blocks after the
-        last index are not run."""
+        each through the final ``norm`` (DINOv2's / DINOv3's ``get_intermediate_layers(..., norm=True)``; register
+        tokens are dropped). Blocks after the last index are not run."""
         wanted = sorted({int(i) for i in indices})
         if not wanted or wanted[0] < 0 or wanted[-1] >= self.depth:
             raise ValueError(f"ViT: block indices must lie in 0..{self.depth - 1}, got {list(indices)}")
-        t = self.tokens(x)
+        t, rope = self.tokens(x)
         found = {}
         for i, block in enumerate(self.blocks):
             if i > wanted[-1]:
                 break
-            t = block(t)
+            t = block(t, rope)
             if i in wanted:
                 found[i] = t
         out = []
+        p = self.num_prefix_tokens
         for i in indices:
             n = self.norm(found[int(i)])
-            out.append((n[:, 1:], n[:, 0]))
+            out.append((n[:, p:], n[:, 0]))
         return out
 
     def forward(self, x: Tensor) -> Tensor:
-        """All tokens after the last block and the final norm: ``(B, 1 + h*w, D)`` (timm's ``forward_features``)."""
-        t = self.tokens(x)
+        """All tokens after the last block and the final norm: ``(B, 1 + R + h*w, D)``, class token first, then the
+        registers (timm's ``forward_features``, transformers' ``last_hidden_state``)."""
+        t, rope = self.tokens(x)
         for block in self.blocks:
-            t = block(t)
+            t = block(t, rope)
         return self.norm(t)
+
+
+__all__ = ["DINOV3_SIZES", "FAMILY_DEFAULTS", "POS_EMBED", "POS_INTERP", "VIT_SIZES", "VisionTransformer",
+           "resample_pos_embed", "swiglu_hidden"]

@@ -83,3 +83,62 @@ def test_main_job_does_not_import_timm_or_transformers():
             "bad = [k for k in ('timm', 'transformers', 'safetensors') if k in sys.modules];"
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+TINY3 = {"name": None, "vit": {"family": "dinov3", "embed_dim": 32, "depth": 4, "num_heads": 2, "layers": (0, 1, 2, 3)},
+         "channels": (8, 16, 16, 32)}
+
+
+def test_dinov3_encoder_runs_on_the_input_itself():
+    """Patch 16: the ViT sees the image as it is (no 14/16 rescale), one patch per 16 pixels."""
+    enc = ViTFeatures(**TINY3)
+    seen = []
+    enc.vit.patch_embed.register_forward_hook(lambda m, i, o: seen.append(tuple(i[0].shape)))
+    feats = enc(torch.rand(1, 3, 64, 160))
+    assert seen == [(1, 3, 64, 160)] and enc.vit.use_rope and enc.vit.num_registers == 4
+    assert [tuple(f.shape[-2:]) for f in feats] == [(16, 40), (8, 20), (4, 10), (2, 5)]
+
+
+@pytest.mark.parametrize("freeze", ["none", 2])
+def test_fredsnet_with_dinov3_encoder_trains(freeze):
+    model = create_model("fredsnet", backbone="resnet18", width=0.0625, head_width=64,
+                         encoder=dict(TINY3, freeze=freeze))
+    out = model(torch.rand(2, 3, 64, 128))
+    assert out["depth"].shape == (2, 1, 64, 128) and out["semantic"].shape == (2, 14, 64, 128)
+    sum(v.mean() for v in out.values()).backward()
+    grads = {n: p.grad is not None for n, p in model.backbone.vit.named_parameters()}
+    if freeze == "none":
+        assert all(grads.values())
+    else:
+        assert not grads["register_tokens"] and not grads["blocks.1.attn.qkv.weight"]
+        assert grads["blocks.2.attn.qkv.weight"]
+    assert "backbone.vit.rope.periods" in model.state_dict()
+
+
+def test_horizonnet_with_dinov3_encoder():
+    model = create_model("horizonnet", hidden=16, encoder=TINY3)
+    out = model(torch.rand(1, 3, 64, 128))
+    assert out["boundary"].shape == (1, 2, 128) and out["corner"].shape == (1, 1, 128)
+
+
+def test_encoder_loads_timm_dinov3_weights_and_names_a_wrong_family(tmp_path):
+    timm = pytest.importorskip("timm")
+    ref = timm.create_model("vit_small_patch16_dinov3", pretrained=False, embed_dim=32, depth=4, num_heads=2,
+                            num_classes=0).eval()
+    torch.save(ref.state_dict(), tmp_path / "dinov3_tiny.pth")
+    enc = ViTFeatures(**TINY3, pretrained=tmp_path / "dinov3_tiny.pth").eval()
+    assert "blocks.0.attn.qkv.bias" not in enc.vit.state_dict()  # timm's non-qkvb models have no qkv bias
+    x = torch.randn(1, 3, 32, 64)
+    with torch.no_grad():
+        assert (enc.vit(x) - ref.forward_features(x)).abs().max() <= 1e-5
+    with pytest.raises(ValueError, match="dinov3_tiny.pth: holds a dinov3 ViT.*encoder 'custom' is a dinov2 ViT"):
+        ViTFeatures(name=None, vit=TINY["vit"], channels=TINY["channels"], pretrained=tmp_path / "dinov3_tiny.pth")
+
+
+def test_named_dinov3_encoder_and_the_name_that_fits(tmp_path):
+    enc = ViTFeatures("dinov3_s")
+    assert enc.vit.patch_size == 16 and enc.layers == (2, 5, 8, 11) and enc.channels == (48, 96, 192, 384)
+    assert [tuple(f.shape) for f in enc(torch.rand(1, 3, 32, 64))][-1] == (1, 384, 1, 2)
+    torch.save(enc.vit.state_dict(), tmp_path / "vits16.pth")
+    with pytest.raises(ValueError, match="use model.encoder=dinov3_s"):
+        ViTFeatures("dinov2_s_reg", pretrained=tmp_path / "vits16.pth")

@@ -161,3 +161,67 @@ def test_dinov2_code_position_interpolation():
     torch.testing.assert_close(got[:, 1:], want, atol=0, rtol=0)
     hf = resample_pos_embed(pe, 518, 1036, 14, "hf")
     assert hf.shape == got.shape and not torch.equal(hf, got)
+
+
+@pytest.mark.parametrize("variant", ["mlp", "swiglu"])
+def test_timm_dinov2_reg4_parity(tmp_path, variant):
+    """timm's ``*_reg4_dinov2`` (``reg_token``; ``no_embed_class``: a position table without the class row, timm
+    having folded that row into ``cls_token``)."""
+    timm = pytest.importorskip("timm")
+    name = "vit_small_patch14_reg4_dinov2" if variant == "mlp" else "vit_giant_patch14_reg4_dinov2"
+    ref = timm.create_model(name, pretrained=False, img_size=42, embed_dim=48, depth=3, num_heads=2,
+                            dynamic_img_size=True).eval()
+    _randomize(ref, 5)
+    torch.save(ref.state_dict(), tmp_path / "reg4.pth")
+    ours = _ours_from(tmp_path / "reg4.pth", num_heads=2, ffn=variant, num_registers=4)
+    assert ours.pos_interp == "timm" and ours.num_registers == 4
+    for size in [(42, 42), (42, 70), (56, 28)]:
+        x = torch.randn(2, 3, *size, generator=torch.Generator().manual_seed(6))
+        with torch.no_grad():
+            want, got = ref.forward_features(x), ours(x)
+        err = (got - want).abs().max().item()
+        assert err <= 1e-5, f"{name} at {size}: max abs error {err:.2e}"
+    with torch.no_grad():
+        want = ref.forward_intermediates(x, indices=[0, 2], norm=True, output_fmt="NLC", intermediates_only=True)
+        got = [tok for tok, _cls in ours.intermediate(x, [0, 2])]
+    assert max((g - w).abs().max().item() for g, w in zip(got, want)) <= 1e-5
+
+
+def _hf_dinov2_reg(transformers):
+    cfg = transformers.Dinov2WithRegistersConfig(hidden_size=48, num_hidden_layers=3, num_attention_heads=2,
+                                                 image_size=42, patch_size=14, num_register_tokens=4)
+    ref = transformers.Dinov2WithRegistersModel(cfg).eval()
+    _randomize(ref, 7)
+    return ref
+
+
+def test_hf_dinov2_with_registers_parity(tmp_path):
+    transformers = pytest.importorskip("transformers")
+    ref = _hf_dinov2_reg(transformers)
+    torch.save(ref.state_dict(), tmp_path / "pytorch_model.bin")
+    ours = _ours_from(tmp_path / "pytorch_model.bin", num_heads=2, num_registers=4)
+    assert ours.pos_interp == "dinov2_reg"
+    for size in [(42, 42), (42, 70), (56, 28)]:
+        x = torch.randn(2, 3, *size, generator=torch.Generator().manual_seed(8))
+        with torch.no_grad():
+            want, got = ref(pixel_values=x).last_hidden_state, ours(x)
+        err = (got - want).abs().max().item()
+        assert err <= 1e-5, f"transformers Dinov2WithRegisters at {size}: max abs error {err:.2e}"
+
+
+def test_dinov2_reg_code_layout(tmp_path):
+    """The DINOv2 code's ``dinov2_vits14_reg4_pretrain.pth`` layout (not checkable against that code here): built
+    key by key from the transformers model (``register_tokens``, ``mask_token``, the class token's position row in
+    ``pos_embed``), it loads strictly, resamples like the DINOv2 code for ``*_reg`` models (``interpolate_offset=0``,
+    anti-aliased: the same as transformers') and gives transformers' outputs."""
+    transformers = pytest.importorskip("transformers")
+    ref = _hf_dinov2_reg(transformers)
+    from omnidl.models.foundation.convert import vit_from_hf
+    code = vit_from_hf(ref.state_dict())
+    code["mask_token"] = torch.zeros(1, 48)
+    torch.save(code, tmp_path / "dinov2_vits14_reg4_pretrain.pth")
+    ours = _ours_from(tmp_path / "dinov2_vits14_reg4_pretrain.pth", num_heads=2, num_registers=4)
+    assert ours.pos_interp == "dinov2_reg"
+    x = torch.randn(1, 3, 56, 28, generator=torch.Generator().manual_seed(9))
+    with torch.no_grad():
+        assert (ours(x) - ref(pixel_values=x).last_hidden_state).abs().max().item() <= 1e-5
