@@ -11,7 +11,9 @@ any omnidirectional camera of omnidl, central or not:
    110°: a 10° overlap on every side). Views upright (image "up" towards ``-y``) except the poles.
 2. **Cut** (:func:`cut_views`): every view pixel's direction is projected into the input image and sampled
    (bilinear, the 360° seam wrapped). A non-central input (whose rays do not meet in one point) is sampled where its
-   rays see the point at ``assumed_range`` metres along the view ray from the centre.
+   rays see the point at ``assumed_range`` metres along the view ray from the centre (where no ray sees that point,
+   e.g. within ``atan(rc / assumed_range)`` of a non-central panorama's poles: farther along the view ray,
+   :func:`view_grid`).
 3. **Predict**: ``predict(images (V, 3, S, S)) -> (V, 1, S, S)``: z-depth (``kind="depth"``) or an inverse depth
    (``kind="disparity"``) of each view.
 4. **Align** (:func:`align_views`): every input pixel seen by two or more views gives one equation per view; the
@@ -23,7 +25,13 @@ any omnidirectional camera of omnidl, central or not:
    range) over the views that see it, each weighted by its distance to the view's border (a tent falling to 0 at
    the border: no seam). For a central input the range of pixel ``p`` is the fused range along its ray. For a
    non-central input, pixel ``p`` has its own ray ``o + t d``: ``t`` solves ``|o + t d| = r(dir(o + t d))`` by
-   fixed-point iteration (``noncentral_iters``), ``r`` the fused range from the centre.
+   fixed-point iteration (``noncentral_iters``), ``r`` the fused range from the centre; a pixel whose iteration has
+   not settled (to 0.1 %) is left invalid (:func:`fuse_on_camera`). Such pixels, and the few wrong ones, lie on depth
+   edges: a ray from the rig that sees a point the centre does not (hidden behind a nearer surface) has no exact
+   fixed point in the views.
+
+A network trained on the views themselves (:mod:`omnidl.data.views`, the same views and cut, z-depth targets) runs
+on whole images as :class:`ViewNetwork` (views to the network, whole images through this chain).
 
 Depth conventions: the output is the **range along each pixel's ray** from the ray's origin (omnidl's depth maps,
 :mod:`omnidl.synth`); views' ``"depth"`` is z-depth along the view's optical axis (what perspective models predict).
@@ -40,6 +48,7 @@ from torch import Tensor
 
 from omnidl.cameras.base import Camera
 from omnidl.cameras.pinhole import Pinhole
+from omnidl.cameras.resolve import resolve_camera
 
 from .cubemap import cube_face_rotations
 from .warp import WarpGrid, sample_grid
@@ -102,22 +111,54 @@ def _input_rays(camera: Camera, dtype: torch.dtype, device) -> tuple[Tensor, Ten
     return rays.origin.to(dtype), rays.direction.to(dtype), rays.valid
 
 
-def cut_views(image: Tensor, camera: Camera, views: Sequence[View], assumed_range: float = 3.0) -> tuple[Tensor, Tensor]:
-    """The views' images ``(V, C, S, S)`` and valid masks ``(V, 1, S, S)`` from ``image (C, H, W)`` of ``camera``.
+#: a non-central camera's cut: ranges ``assumed_range * FAR_STEP ** k`` (k = 1..FAR_STEPS) tried where no ray sees the
+#: point at ``assumed_range`` (up to ``2 ** 12 = 4096`` times farther)
+FAR_STEP, FAR_STEPS = 2.0, 12
 
-    A central camera is sampled along each view ray's direction; a non-central one where it sees the point at
-    ``assumed_range`` metres along the view ray."""
+
+def view_grid(camera: Camera, view: View, assumed_range: float = 3.0, device=None) -> tuple[Tensor, Tensor]:
+    """Where ``camera`` sees each pixel of ``view``: ``uv (S, S, 2)`` float64 input pixels and ``valid (S, S)``.
+
+    A central camera projects each view ray's direction. A non-central one projects the point at ``assumed_range``
+    metres along the view ray from the centre; where no ray of the camera sees that point (it lies inside the rig:
+    above or below a non-central panorama's circle of radius ``rc``, within ``atan(rc / assumed_range)`` of the
+    poles), the point farther along the same view ray (``assumed_range * 2 ** k``, the first ``k <= 12`` a ray sees;
+    the limit is the rays closest to the pole). This is the one mapping from a view to the input camera: the
+    zero-shot chain (:func:`cut_views`) and the training views (:mod:`omnidl.data.views`) both use it."""
+    dist = 1.0 if camera.central else float(assumed_range)
+    if not (math.isfinite(dist) and dist > 0):
+        raise ValueError(f"cut_views: assumed_range must be a finite number > 0 metres, got {assumed_range}")
+    d = view.camera.unproject_grid(dtype=torch.float64, device=device).direction
+    d = d @ view.rotation.to(d).T
+    uv, ok = camera.project(d * dist)
+    if not camera.central:
+        for k in range(1, FAR_STEPS + 1):
+            if bool(ok.all()):
+                break
+            far_uv, far_ok = camera.project(d * dist * FAR_STEP ** k)
+            take = far_ok & ~ok
+            uv = torch.where(take[..., None], far_uv, uv)
+            ok = ok | take
+    return uv, ok
+
+
+def view_cos(view: View, dtype: torch.dtype = torch.float64, device=None) -> Tensor:
+    """``(S, S)`` cosine of each view pixel's ray to the view's optical axis (``+z``). A view's z-depth is
+    ``range * view_cos`` (range from the centre along the pixel's ray): the conversion the chain inverts when it
+    reads a view's depth as ``z / cos`` (:func:`align_views`, :class:`FusedViews`)."""
+    return view.camera.unproject_grid(dtype=dtype, device=device).direction[..., 2]
+
+
+def cut_views(image: Tensor, camera: Camera, views: Sequence[View], assumed_range: float = 3.0) -> tuple[Tensor, Tensor]:
+    """The views' images ``(V, C, S, S)`` and valid masks ``(V, 1, S, S)`` from ``image (C, H, W)`` of ``camera``,
+    sampled bilinearly where :func:`view_grid` says the camera sees each view pixel."""
     x = image if image.dim() == 4 else image.unsqueeze(0)
     if x.shape[0] != 1 or x.shape[-2:] != (camera.height, camera.width):
         raise ValueError(f"cut_views: image must be (C, H, W) of the camera's size {camera.height}x{camera.width}, "
                          f"got {tuple(image.shape)}")
-    dist = 1.0 if camera.central else float(assumed_range)
-    if not dist > 0:
-        raise ValueError(f"cut_views: assumed_range must be > 0 metres, got {assumed_range}")
     outs, valids = [], []
     for view in views:
-        d = view.camera.unproject_grid(dtype=torch.float64, device=x.device).direction
-        uv, ok = camera.project(d @ view.rotation.to(d).T * dist)
+        uv, ok = view_grid(camera, view, assumed_range, x.device)
         grid = WarpGrid(uv.unsqueeze(0), ok.unsqueeze(0), camera.width, camera.height, camera.wraps_horizontally)
         out, valid = sample_grid(x, grid, "bilinear")
         outs.append(out[0])
@@ -317,8 +358,21 @@ class ViewDepth(NamedTuple):
     border: Tensor
 
 
-def fuse_on_camera(fused: FusedViews, camera: Camera, noncentral_iters: int = 8) -> tuple[Tensor, Tensor, Tensor]:
-    """The fused range on every pixel of ``camera``: ``(depth (1, H, W), valid (1, H, W), border (1, H, W))``."""
+#: a non-central pixel's fixed point counts as converged when its last step moved ``t`` by at most this fraction
+NONCENTRAL_TOL = 1e-3
+
+
+def fuse_on_camera(fused: FusedViews, camera: Camera, noncentral_iters: int = 8,
+                   assumed_range: float = 3.0) -> tuple[Tensor, Tensor, Tensor]:
+    """The fused range on every pixel of ``camera``: ``(depth (1, H, W), valid (1, H, W), border (1, H, W))``.
+
+    A non-central pixel's ray ``o + t d`` starts at the fused range along ``d`` from the centre, or, where no view
+    has a value there (the pole rows of a non-central panorama look along directions that are inside the rig at
+    ``assumed_range``: their own direction is not cut, the directions of the points they see are), at the ``t``
+    with ``|o + t d| = assumed_range``; then ``noncentral_iters`` fixed-point steps ``t <- the root of
+    |o + t d| = r(dir(o + t d))``. A pixel is valid when the last step had a fused range and moved ``t`` by at most
+    :data:`NONCENTRAL_TOL` (relative): a fixed point that did not settle (an oscillation across a depth edge) is
+    left out, never reported."""
     dtype = fused.preds.dtype if fused.preds.dtype == torch.float64 else torch.float32
     o, d, ok = _input_rays(camera, torch.float64, fused.preds.device)
     H, W = camera.height, camera.width
@@ -328,7 +382,9 @@ def fuse_on_camera(fused: FusedViews, camera: Camera, noncentral_iters: int = 8)
     if not camera.central:
         od = (o * d).sum(-1)
         oo = (o * o).sum(-1)
-        for _ in range(int(noncentral_iters)):
+        start = -od + torch.sqrt((od * od - oo + float(assumed_range) ** 2).clamp_min(0))
+        t = torch.where(has & (t > 0), t, start)
+        for _ in range(max(1, int(noncentral_iters))):
             X = o + t[:, None] * d
             dirs = X / X.norm(dim=-1, keepdim=True).clamp_min(1e-12)
             r, has2 = fused.range(dirs.to(dtype))
@@ -336,14 +392,13 @@ def fuse_on_camera(fused: FusedViews, camera: Camera, noncentral_iters: int = 8)
             disc = od * od - oo + r * r
             good = has2 & (disc >= 0)
             t_new = -od + torch.sqrt(disc.clamp_min(0))
-            has = has & good
+            step = (t_new - t).abs()
             t = torch.where(good, t_new, t)
-        dirs = d
-    else:
-        dirs = d
+            has = good
+        has = has & (step <= NONCENTRAL_TOL * t.abs())
     valid = ok & has & (t > 0) & torch.isfinite(t)
     depth = torch.where(valid, t, torch.zeros_like(t)).to(dtype)
-    border = fused.border_band(dirs.to(dtype)) & valid
+    border = fused.border_band(d.to(dtype)) & valid
     return depth.reshape(1, H, W), valid.reshape(1, H, W), border.reshape(1, H, W)
 
 
@@ -398,9 +453,114 @@ def depth_through_views(image: Tensor, camera: Camera, predict: Callable[[Tensor
     s = sample_views(pred, views, _input_rays(camera, pred.dtype, pred.device)[1].reshape(-1, 3), masks)
     alignment = align_views(s, kind, align, robust_iters)
     fused = FusedViews(pred, views, alignment, masks)
-    depth, valid, border = fuse_on_camera(fused, camera, noncentral_iters)
+    depth, valid, border = fuse_on_camera(fused, camera, noncentral_iters, assumed_range)
     return ViewDepth(depth, valid, views, pred, alignment, border)
 
 
-__all__ = ["View", "view_layout", "cut_views", "sample_views", "Samples", "align_views", "Alignment", "FusedViews",
-           "fuse_on_camera", "depth_through_views", "visible_views", "ViewDepth", "LAYOUTS", "KINDS", "ALIGNS"]
+def fuse_maps(maps: Tensor, views: Sequence[View], directions: Tensor, masks: Tensor | None = None
+              ) -> tuple[Tensor, Tensor]:
+    """Per-view maps ``(V, C, S, S)`` (e.g. class probabilities) along unit ``directions (P, 3)``: the tent-weighted
+    mean over the views that see each direction (as :class:`FusedViews` fuses the range, no alignment) ->
+    ``(values (C, P), valid (P,))``."""
+    out, den = [], None
+    for c in range(maps.shape[1]):
+        s = sample_views(maps[:, c:c + 1], views, directions, masks)
+        den = s.weight.sum(0)
+        out.append((s.weight * s.value).sum(0) / den.clamp_min(1e-12))
+    return torch.stack(out), den > 0
+
+
+class ViewNetwork(torch.nn.Module):
+    """A perspective network trained on views, run on a whole camera through the chain.
+
+    ``forward(x (B, 3, H, W))``: an input of the views' size ``S x S`` goes to ``net`` as it is (training on views,
+    validation on views); any other size is an image of ``camera`` (resized to ``W x H``), run through
+    :func:`depth_through_views` (``eval()`` mode only; the chain is not differentiable):
+    ``{"depth": (B, 1, H, W)`` range along each pixel's ray (0 where no view gives a value), ``"semantic": (B, C, H,
+    W)`` log of the fused class probabilities (when ``net`` returns ``"semantic"`` logits; uniform where no view
+    sees the pixel)``}``. The network's ``"depth"`` must be the views' z-depth (metric:
+    ``align="scale"`` keeps its scale; ``"none"`` trusts every view as it is).
+
+    Args:
+        net: the perspective network (``net(x)["depth"]`` ``(n, 1, S, S)`` z-depth in metres).
+        camera: the camera of the whole images (any :func:`omnidl.cameras.resolve_camera` spec).
+        layout, size, fov: the views (:func:`view_layout`; the training views' own).
+        align, assumed_range, noncentral_iters, batch: as :func:`depth_through_views`.
+    """
+
+    def __init__(self, net: torch.nn.Module, camera, layout: str = "tangent", size: int = 96,
+                 fov: float | None = None, align: str = "scale", assumed_range: float = 3.0,
+                 noncentral_iters: int = 8, batch: int = 16) -> None:
+        super().__init__()
+        if align not in ALIGNS or align == "affine":
+            raise ValueError(f"ViewNetwork: align must be 'scale' or 'none' (a metric z-depth network), got {align!r}")
+        self.net = net
+        self.camera = resolve_camera(camera)
+        self.layout, self.size, self.fov = layout, int(size), fov
+        self.views = view_layout(layout, self.size, fov)
+        if (self.camera.height, self.camera.width) == (self.size, self.size):
+            raise ValueError(f"ViewNetwork: the camera is {self.size}x{self.size}, the size of the views; an input "
+                             "of that size would be taken as a view (choose another view size)")
+        self.align, self.assumed_range = align, float(assumed_range)
+        self.noncentral_iters, self.batch = int(noncentral_iters), int(batch)
+        self._cameras: dict[tuple[int, int], tuple[Camera, list[View]]] = {}
+
+    def whole_camera(self, width: int, height: int) -> tuple[Camera, list[View]]:
+        """The camera at ``width x height`` and the views it sees (cached)."""
+        if (width, height) not in self._cameras:
+            cam = resolve_camera(self.camera, int(width), int(height))
+            self._cameras[(width, height)] = (cam, visible_views(cam, self.views))
+        return self._cameras[(width, height)]
+
+    def forward(self, x: Tensor) -> dict[str, Tensor]:
+        if x.dim() != 4 or x.shape[1] != 3:
+            raise ValueError(f"ViewNetwork: input must be (B, 3, H, W), got {tuple(x.shape)}")
+        H, W = x.shape[-2:]
+        if (H, W) == (self.size, self.size):
+            return self.net(x)
+        if self.training:
+            raise ValueError(f"ViewNetwork: trains on {self.size}x{self.size} views, got a {W}x{H} image in "
+                             "training mode (whole images go through the view chain in eval() mode only)")
+        cam, views = self.whole_camera(W, H)
+        depths, sems = [], []
+        with torch.no_grad():
+            for b in range(x.shape[0]):
+                logits: list[Tensor] = []
+
+                def predict(images: Tensor, _views: list, logits: list[Tensor] = logits) -> Tensor:
+                    out = self.net(images.to(x.device))
+                    if "semantic" in out:
+                        logits.append(out["semantic"].float())
+                    return out["depth"].float()
+
+                res = depth_through_views(x[b].float(), cam, predict, views=views, kind="depth", align=self.align,
+                                          assumed_range=self.assumed_range, batch=self.batch,
+                                          noncentral_iters=self.noncentral_iters)
+                depths.append(res.depth)
+                if logits:
+                    sems.append(self._semantic(torch.cat(logits), res, cam))
+        out = {"depth": torch.stack(depths).float()}
+        if sems:
+            out["semantic"] = torch.stack(sems)
+        return out
+
+    def _semantic(self, logits: Tensor, res: ViewDepth, cam: Camera) -> Tensor:
+        """``(C, H, W)`` log of the views' class probabilities fused along each pixel's ray (non-central: towards
+        the point at the fused depth)."""
+        rays = cam.unproject_grid(dtype=torch.float64, device=logits.device)
+        o, d = rays.origin.reshape(-1, 3), rays.direction.reshape(-1, 3)
+        if not cam.central:
+            t = res.depth.reshape(-1).to(torch.float64)
+            X = o + t[:, None] * d
+            d = torch.where(res.valid.reshape(-1, 1), X / X.norm(dim=-1, keepdim=True).clamp_min(1e-12), d)
+        masks = cut_views(torch.zeros(1, cam.height, cam.width, device=logits.device), cam, res.views,
+                          self.assumed_range)[1]
+        probs, ok = fuse_maps(logits.softmax(1), res.views, d.to(logits.dtype), masks)
+        C = logits.shape[1]
+        probs = torch.where(ok[None], probs, torch.full_like(probs, 1.0 / C))
+        return probs.clamp_min(1e-8).log().reshape(C, cam.height, cam.width)
+
+
+__all__ = ["View", "view_layout", "view_grid", "view_cos", "cut_views", "sample_views", "Samples", "align_views",
+           "Alignment", "FusedViews", "fuse_on_camera", "depth_through_views", "visible_views", "ViewDepth", "LAYOUTS",
+           "KINDS", "ALIGNS", "NONCENTRAL_TOL", "fuse_maps", "ViewNetwork"]

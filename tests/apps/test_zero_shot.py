@@ -27,8 +27,12 @@ def test_predict_depth_zero_shot_runs_on_any_camera(camera, metric):
     image = torch.rand(3, camera.height, camera.width, generator=torch.Generator().manual_seed(1))
     res, summary = zero_shot.predict_depth_zero_shot(image, camera, _tiny(metric), layout="cube", size=28)
     assert res.depth.shape == (1, 32, 64) and bool(torch.isfinite(res.depth).all())
-    # a random relative model predicts zeros (ReLU) in places: inverse depths <= 0 after the alignment are masked
-    assert summary["coverage"] > (0.9 if metric else 0.5) and summary["views"]["count"] == 6
+    assert summary["views"]["count"] == 6 and len(summary["alignment"]["scale"]) == 6
+    # A random relative model returns a nearly constant inverse depth, for which the per-view scale-and-shift
+    # alignment is ill-posed (scales of either sign), and inverse depths <= 0 after it are masked: its coverage
+    # depends on the random initialisation. The accuracy of the relative alignment is tested with a stand-in in
+    # tests/geometry/test_views.py; here the relative run only has to produce values.
+    assert summary["coverage"] > (0.9 if metric else 0.0)
     assert summary["kind"].startswith("metric" if metric else "relative")
     json.dumps(summary)
 
