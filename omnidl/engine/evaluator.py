@@ -24,6 +24,7 @@ Datasets without labels (``data=folder``) only get predictions, pictures and poi
 from __future__ import annotations
 
 import copy
+import inspect
 import logging
 import time
 from contextlib import contextmanager
@@ -215,7 +216,39 @@ def _model_from_checkpoint(cfg: DictConfig, device: torch.device) -> tuple[DictC
     else:
         model = build_model(cfg).to(device).eval()
         log.warning("no checkpoint given (checkpoint=PATH): evaluating the randomly initialised model")
-    return cfg, model, ckpt_path
+    return cfg, _through_views(cfg, model), ckpt_path
+
+
+def _through_views(cfg: DictConfig, model: torch.nn.Module) -> torch.nn.Module:
+    """``model`` as it is, or, when the data config has ``through_views: {layout, size, fov, align, assumed_range,
+    ...}`` (the options of :class:`omnidl.geometry.views.ThroughViews`, plus ``split``: the split of whole images,
+    default ``test``) and that split is evaluated, ``model`` (its weights loaded) wrapped in ``ThroughViews`` on the
+    configured camera (``camera=...``, resized to the images): a perspective depth network trained on views, run on
+    whole images through the view chain. Training never wraps (validation stays on the views)."""
+    data = cfg.get("data")
+    node = data.get("through_views") if isinstance(data, DictConfig) else None
+    if node is None:
+        return model
+    from omnidl.geometry.views import ThroughViews
+    opts = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+    allowed = [k for k in inspect.signature(ThroughViews).parameters if k not in ("net", "camera")] + ["split"]
+    if not isinstance(opts, dict) or set(opts) - set(allowed):
+        bad = sorted(set(opts) - set(allowed)) if isinstance(opts, dict) else opts
+        raise ValueError(f"data.through_views: expected null or a mapping with some of the keys {allowed}, got "
+                         f"{'the unknown key(s) ' if isinstance(opts, dict) else ''}{bad!r}")
+    split = str(opts.pop("split", "test"))
+    if str(cfg.eval.split) != split:
+        log.info("data.through_views is for the %s split: evaluating the %s split with the model as it is", split,
+                 cfg.eval.split)
+        return model
+    node = cfg.get("camera")
+    if node is None or (isinstance(node, DictConfig) and len(node) == 0):
+        raise ValueError("data.through_views needs the camera of the whole images: choose camera=<name>")
+    wrapped = ThroughViews(model, build_camera(cfg), **opts).eval()
+    log.info("data.through_views: evaluating the %s split's whole images through the view chain (%s camera, %d %s "
+             "views of %d px, align %s; omnidl.geometry.views.ThroughViews)", split, type(wrapped.camera).__name__,
+             len(wrapped.views), wrapped.layout, wrapped.size, wrapped.align)
+    return wrapped
 
 
 def _claims(cfg: DictConfig, out_dir: Path, ckpt_path: str | None) -> OutputClaims:

@@ -30,8 +30,9 @@ any omnidirectional camera of omnidl, central or not:
    edges: a ray from the rig that sees a point the centre does not (hidden behind a nearer surface) has no exact
    fixed point in the views.
 
-A network trained on the views themselves (:mod:`omnidl.data.views`, the same views and cut, z-depth targets) runs
-on whole images as :class:`ViewNetwork` (views to the network, whole images through this chain).
+A network trained on the views themselves (:mod:`omnidl.data.views`, the same views and cut, z-depth targets) is a
+plain perspective network; :class:`ThroughViews` runs it on whole images of a camera, always through this chain
+(``evaluate.py`` wraps it when the data config says ``through_views``).
 
 Depth conventions: the output is the **range along each pixel's ray** from the ray's origin (omnidl's depth maps,
 :mod:`omnidl.synth`); views' ``"depth"`` is z-depth along the view's optical axis (what perspective models predict).
@@ -470,60 +471,67 @@ def fuse_maps(maps: Tensor, views: Sequence[View], directions: Tensor, masks: Te
     return torch.stack(out), den > 0
 
 
-class ViewNetwork(torch.nn.Module):
-    """A perspective network trained on views, run on a whole camera through the chain.
+class ThroughViews(torch.nn.Module):
+    """A perspective depth network run on whole images of ``camera``, always through the view chain.
 
-    ``forward(x (B, 3, H, W))``: an input of the views' size ``S x S`` goes to ``net`` as it is (training on views,
-    validation on views); any other size is an image of ``camera`` (resized to ``W x H``), run through
-    :func:`depth_through_views` (``eval()`` mode only; the chain is not differentiable):
-    ``{"depth": (B, 1, H, W)`` range along each pixel's ray (0 where no view gives a value), ``"semantic": (B, C, H,
-    W)`` log of the fused class probabilities (when ``net`` returns ``"semantic"`` logits; uniform where no view
-    sees the pixel)``}``. The network's ``"depth"`` must be the views' z-depth (metric:
-    ``align="scale"`` keeps its scale; ``"none"`` trusts every view as it is).
+    ``forward(x (B, 3, H, W))``, ``x`` images of ``camera`` (or of the camera uniformly resized to ``W x H``): every
+    image is cut into the views, ``net`` predicts each view's z-depth (and class logits), and the views are aligned
+    and fused on the camera's pixels by :func:`depth_through_views` -> ``{"depth": (B, 1, H, W)`` float32 range along
+    each pixel's ray (0 where no view gives a value), ``"semantic": (B, C, H, W)`` log of the fused class
+    probabilities (when ``net`` returns ``"semantic"`` logits ``(n, C, S, S)``; uniform where no view sees the
+    pixel)``}``. The network's ``"depth"`` must be the views' z-depth in metres (``align="scale"`` keeps its metric
+    scale, ``"none"`` trusts every view as it is).
+
+    The same computation in every mode: there is no other route (no branch on the input's size, on
+    ``training``, on grad mode). The chain is **not differentiable**: ``net`` always runs under ``torch.no_grad()``
+    and with autocast off (float32), in train and eval mode alike, so the outputs carry no gradient. ``net`` keeps
+    its own ``train()``/``eval()`` mode (dropout and batch norm behave as they do in that mode; evaluate.py runs
+    ``eval()``). To train the network, train it on the views themselves (:class:`omnidl.data.views.PanoramaViews`).
 
     Args:
-        net: the perspective network (``net(x)["depth"]`` ``(n, 1, S, S)`` z-depth in metres).
-        camera: the camera of the whole images (any :func:`omnidl.cameras.resolve_camera` spec).
+        net: the perspective network: ``net(images (n, 3, S, S))["depth"]`` ``(n, 1, S, S)`` z-depth in metres.
+        camera: the camera of the whole images (a ``Camera`` or a config mapping; no files are read).
         layout, size, fov: the views (:func:`view_layout`; the training views' own).
-        align, assumed_range, noncentral_iters, batch: as :func:`depth_through_views`.
+        align, assumed_range, noncentral_iters, batch: as :func:`depth_through_views` (``batch`` views per call
+            of ``net``).
     """
 
-    def __init__(self, net: torch.nn.Module, camera, layout: str = "tangent", size: int = 96,
+    def __init__(self, net: torch.nn.Module, camera, layout: str = "tangent", size: int = 518,
                  fov: float | None = None, align: str = "scale", assumed_range: float = 3.0,
                  noncentral_iters: int = 8, batch: int = 16) -> None:
         super().__init__()
-        if align not in ALIGNS or align == "affine":
-            raise ValueError(f"ViewNetwork: align must be 'scale' or 'none' (a metric z-depth network), got {align!r}")
+        if align not in ("scale", "none"):
+            raise ValueError(f"ThroughViews: align must be 'scale' or 'none' (a z-depth network), got {align!r}")
+        if int(batch) < 1:
+            raise ValueError(f"ThroughViews: batch must be >= 1 views per call of the network, got {batch}")
         self.net = net
-        self.camera = resolve_camera(camera)
+        self.camera = resolve_camera(camera, allow_files=False)
         self.layout, self.size, self.fov = layout, int(size), fov
         self.views = view_layout(layout, self.size, fov)
-        if (self.camera.height, self.camera.width) == (self.size, self.size):
-            raise ValueError(f"ViewNetwork: the camera is {self.size}x{self.size}, the size of the views; an input "
-                             "of that size would be taken as a view (choose another view size)")
         self.align, self.assumed_range = align, float(assumed_range)
         self.noncentral_iters, self.batch = int(noncentral_iters), int(batch)
         self._cameras: dict[tuple[int, int], tuple[Camera, list[View]]] = {}
 
+    def extra_repr(self) -> str:
+        return (f"camera={type(self.camera).__name__}({self.camera.width}x{self.camera.height}), "
+                f"layout={self.layout!r}, size={self.size}, views={len(self.views)}, align={self.align!r}")
+
     def whole_camera(self, width: int, height: int) -> tuple[Camera, list[View]]:
-        """The camera at ``width x height`` and the views it sees (cached)."""
-        if (width, height) not in self._cameras:
-            cam = resolve_camera(self.camera, int(width), int(height))
-            self._cameras[(width, height)] = (cam, visible_views(cam, self.views))
-        return self._cameras[(width, height)]
+        """The camera at ``width x height`` (a uniform resize of :attr:`camera`, else a ``ValueError``) and the
+        views it sees (cached)."""
+        key = (int(width), int(height))
+        if key not in self._cameras:
+            cam = resolve_camera(self.camera, key[0], key[1], check_aspect=True)
+            self._cameras[key] = (cam, visible_views(cam, self.views))
+        return self._cameras[key]
 
     def forward(self, x: Tensor) -> dict[str, Tensor]:
         if x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"ViewNetwork: input must be (B, 3, H, W), got {tuple(x.shape)}")
+            raise ValueError(f"ThroughViews: input must be images (B, 3, H, W) of the camera, got {tuple(x.shape)}")
         H, W = x.shape[-2:]
-        if (H, W) == (self.size, self.size):
-            return self.net(x)
-        if self.training:
-            raise ValueError(f"ViewNetwork: trains on {self.size}x{self.size} views, got a {W}x{H} image in "
-                             "training mode (whole images go through the view chain in eval() mode only)")
         cam, views = self.whole_camera(W, H)
         depths, sems = [], []
-        with torch.no_grad():
+        with torch.no_grad(), torch.autocast(device_type=x.device.type, enabled=False):
             for b in range(x.shape[0]):
                 logits: list[Tensor] = []
 
@@ -563,4 +571,4 @@ class ViewNetwork(torch.nn.Module):
 
 __all__ = ["View", "view_layout", "view_grid", "view_cos", "cut_views", "sample_views", "Samples", "align_views",
            "Alignment", "FusedViews", "fuse_on_camera", "depth_through_views", "visible_views", "ViewDepth", "LAYOUTS",
-           "KINDS", "ALIGNS", "NONCENTRAL_TOL", "fuse_maps", "ViewNetwork"]
+           "KINDS", "ALIGNS", "NONCENTRAL_TOL", "fuse_maps", "ThroughViews"]

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from omnidl.cameras import Equirectangular, KannalaBrandt, NonCentralPanorama, Unified
-from omnidl.geometry.views import (Samples, ViewNetwork, align_views, cut_views, depth_through_views, view_layout,
+from omnidl.geometry.views import (Samples, ThroughViews, align_views, cut_views, depth_through_views, view_layout,
                                    visible_views)
 
 CAMERAS = {
@@ -178,8 +178,9 @@ def test_bad_arguments_are_named():
         depth_through_views(img, cam, lambda x, v: x[:, :1] * math.nan, layout="cube", size=16)
 
 
-class _ConstantDepth(torch.nn.Module):
-    """A stand-in network: z-depth ``2 * cos`` (a sphere of radius 2 m around the centre) and 3 class logits."""
+class _StandIn(torch.nn.Module):
+    """A stand-in network: z-depth ``2 * (1 + blue) * cos`` (a sphere of radius 2 m around the centre where the
+    image has no blue) and 3 class logits (red, green, 0)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -189,27 +190,40 @@ class _ConstantDepth(torch.nn.Module):
         from omnidl.geometry.views import view_cos
         S = x.shape[-1]
         cos = view_cos(view_layout("cube", size=S)[0], torch.float32)
-        depth = (2 * self.scale * cos).expand(x.shape[0], 1, S, S)
+        depth = 2 * self.scale * cos * (1 + x[:, 2:3])
         sem = torch.stack([x[:, 0], x[:, 1], torch.zeros_like(x[:, 0])], 1)
         return {"depth": depth, "semantic": sem}
 
 
-def test_view_network_routes_views_to_the_net_and_whole_images_through_the_chain():
-    net = ViewNetwork(_ConstantDepth(), {"type": "equirect", "width": 64, "height": 32}, layout="cube", size=16)
-    assert list(net.state_dict()) == ["net.scale"]
-    view = net(torch.rand(2, 3, 16, 16))
-    assert view["depth"].shape == (2, 1, 16, 16) and view["depth"].requires_grad
-    with pytest.raises(ValueError, match="training mode"):
-        net(torch.rand(1, 3, 32, 64))
+def test_through_views_runs_the_chain_the_same_in_every_mode():
+    """ThroughViews always runs the chain (no route on size or mode): train, eval and no_grad give the same
+    outputs, none with a gradient, equal to a direct depth_through_views call on the camera resized to the image."""
+    camera = {"type": "equirect", "width": 64, "height": 32}
+    net = ThroughViews(_StandIn(), camera, layout="cube", size=16)
+    assert list(net.state_dict()) == ["net.scale"] and net.training
+    img = torch.rand(2, 3, 16, 32, generator=torch.Generator().manual_seed(0))
+    train = net(img)                                 # a 32 x 16 image: the camera resized
     net.eval()
-    img = torch.zeros(1, 3, 16, 32)
-    img[:, 1] = 1.0                                  # class 1 everywhere
-    out = net(img)                                   # a 32 x 16 image: the camera resized
-    assert out["depth"].shape == (1, 1, 16, 32) and out["semantic"].shape == (1, 3, 16, 32)
+    evaluated = net(img)
+    with torch.no_grad():
+        no_grad = net(img)
+    assert train["depth"].shape == (2, 1, 16, 32) and train["semantic"].shape == (2, 3, 16, 32)
+    for out in (evaluated, no_grad):
+        for key in ("depth", "semantic"):
+            torch.testing.assert_close(out[key], train[key], rtol=0, atol=0)
+    assert not train["depth"].requires_grad and not train["semantic"].requires_grad
+    cam = Equirectangular(width=32, height=16)
+    for b in range(2):
+        direct = depth_through_views(img[b], cam, lambda x, v: net.net(x)["depth"], layout="cube", size=16)
+        torch.testing.assert_close(train["depth"][b], direct.depth, rtol=1e-6, atol=1e-6)
+    green = torch.zeros(1, 3, 16, 32)
+    green[:, 1] = 1.0                                # class 1 everywhere, no blue: the 2 m sphere
+    out = net(green)
     torch.testing.assert_close(out["depth"], torch.full((1, 1, 16, 32), 2.0), rtol=0.01, atol=0)  # bilinear z of 16 px views
     assert bool((out["semantic"].argmax(1) == 1).all())
+    with pytest.raises(ValueError, match="16x16"):  # a views-sized input is not a view: it is an image of the camera
+        net(torch.rand(1, 3, 16, 16))
     with pytest.raises(ValueError, match="align"):
-        ViewNetwork(_ConstantDepth(), "equirect_256", align="affine")
-    with pytest.raises(ValueError, match="size of the views"):
-        ViewNetwork(_ConstantDepth(), {"type": "pinhole", "width": 16, "height": 16, "fx": 8, "fy": 8, "cx": 8,
-                                       "cy": 8}, size=16)
+        ThroughViews(_StandIn(), camera, align="affine")
+    with pytest.raises(ValueError, match="input must be images"):
+        net(torch.rand(3, 16, 32))
