@@ -1,6 +1,6 @@
 """Visual gyroscope (thesis ch. 6): CPU speed of HoLiNet + MPP + PVG, and accuracy histograms.
 
-    python benchmarks/gyroscope.py speed [--threads 2] [--reps 5] [--json out.json]
+    python benchmarks/gyroscope.py speed [--threads 2] [--reps 5] [--warmup 2] [--json out.json]
     python benchmarks/gyroscope.py accuracy [--out benchmarks/results/gyroscope] [--n 40]
 
 ``speed``: frames per second of ``Gyroscope.estimate`` end to end (one call per frame: HoLiNet forward at
@@ -125,7 +125,7 @@ def speed(args) -> dict:
     print(host_line())
     print(load_line(args.threads, "at start"))
     loaded = is_loaded(args.threads, steal=False)
-    times = interleaved(jobs, args.reps, warmup=2)
+    times = interleaved(jobs, args.reps, warmup=args.warmup)
     loaded = loaded or is_loaded(args.threads)
     print(load_line(args.threads, "at end"))
     med = {k: statistics.median(v) for k, v in times.items()}
@@ -259,6 +259,7 @@ def main() -> None:
     ap.add_argument("mode", choices=["speed", "accuracy"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--warmup", type=int, default=2, help="speed: untimed runs of every job first")
     ap.add_argument("--n", type=int, default=40, help="samples per accuracy experiment")
     ap.add_argument("--out", default="benchmarks/results/gyroscope")
     ap.add_argument("--json", default=None)

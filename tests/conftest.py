@@ -10,8 +10,20 @@ and ``float64`` by default; ``float16``, ``bfloat16``, ``all`` or a comma list).
     pytest -m "not slow"                  # the fast unit run for local development
     pytest --device all --dtype float64   # also on CUDA, double precision only
 """
+import os
+
 import pytest
 import torch
+
+# Under pytest-xdist (the default `-n 2`) every worker gets its share of the CPUs as intra-op threads, and so do
+# the subprocesses its tests start (OMP_NUM_THREADS): two workers with torch's default of one thread per core
+# would run twice as many OpenMP threads as cores, and every small op's fork/join then waits for a descheduled
+# thread (tests/cameras + tests/nn took 1.7-2.5x as long). Set before omnidl is imported, so that its
+# `trainer.num_threads=0/auto` baseline (omnidl.engine.seed._INITIAL_THREADS) is the share too.
+if os.environ.get("PYTEST_XDIST_WORKER_COUNT"):
+    _SHARE = max(1, len(os.sched_getaffinity(0)) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
+    torch.set_num_threads(_SHARE)
+    os.environ.setdefault("OMP_NUM_THREADS", str(_SHARE))
 
 _DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32, "float64": torch.float64}
 

@@ -58,7 +58,8 @@ class Recipe:
     applied first (``{tmp}`` the test's folder, ``{ckpt:<model>}`` a checkpoint of that model, ``{fisheye}`` the
     fisheye image, calibration and checkpoint of ``tests/apps/test_predict_helpers.readme_fisheye_fixture``, ``{frames}`` a
     folder of panoramas, ``{sweep}`` a multirun folder); ``outputs`` are globs under ``{tmp}`` that must exist;
-    ``produces`` names what the command leaves for later commands; ``skip`` says why it cannot run here."""
+    ``produces`` names what the command leaves for later commands; ``skip`` says why it cannot run here; ``fresh``
+    runs it in a new interpreter even where the zygote could (tests/zygote.py)."""
 
     pattern: str
     smoke: str = ""
@@ -67,6 +68,7 @@ class Recipe:
     produces: str | None = None
     skip: str | None = None
     timeout: int = 600
+    fresh: bool = False
 
 
 _RUN = "hydra.run.dir={tmp}/run"
@@ -77,7 +79,7 @@ RECIPES: list[Recipe] = [
     Recipe(r"^pip install -e \"\.\[dev\]\" && pytest$", skip="the second set-up command is .ci/run itself"),
     Recipe(r"^pip install -e \. && python train\.py model=fredsnet$", subs=((r"^pip install -e \. && ", ""),),
            smoke=f"{SMOKE_TRAIN} {PANO_64} {_RUN}", outputs=("run/checkpoints/best.pt", "run/metrics.json"),
-           produces="ckpt:fredsnet"),
+           produces="ckpt:fredsnet", fresh=True),
     # external data or weights this machine does not have
     Recipe(r"data=stanford2d3ds", skip="needs the Stanford2D3DS dataset (data.root)"),
     Recipe(r"data=matterport3d|data=zind|data=pano_annotator", skip="needs a real dataset (data.root)"),
@@ -85,10 +87,12 @@ RECIPES: list[Recipe] = [
     Recipe(r"convert_fredsnet", skip="needs the official FreDSNet weights file"),
     Recipe(r"loss=fredsnet_loss_weights_best", skip="needs the 20-trial search's result (configs/loss/*_best.yaml)"),
     # benchmarks: one repetition each (their figures need an idle machine)
-    Recipe(r"^python benchmarks/fredsnet\.py$", smoke="--reps 1 --warmup 1 --backbone resnet18 --width 0.125 --skip-equi"),
-    Recipe(r"^python benchmarks/layout\.py$", smoke="--reps 1"),
-    Recipe(r"^python benchmarks/gyroscope\.py accuracy$", smoke="--reps 1 --n 2"),
-    Recipe(r"^python benchmarks/gyroscope\.py speed$", smoke="--reps 1"),
+    Recipe(r"^python benchmarks/fredsnet\.py$",
+           smoke="--reps 1 --warmup 1 --backbone resnet18 --width 0.125 --skip-equi --threads 1"),
+    Recipe(r"^python benchmarks/layout\.py$", smoke="--reps 1 --threads 1"),
+    Recipe(r"^python benchmarks/gyroscope\.py accuracy$", smoke="--reps 1 --n 2 --threads 1 --out {tmp}/gyro",
+           outputs=("gyro/*",)),
+    Recipe(r"^python benchmarks/gyroscope\.py speed$", smoke="--reps 1 --warmup 1 --threads 1"),
     Recipe(r"^python -m benchmarks\.", skip="a speed benchmark (run by hand on an idle machine)"),
     # training and evaluation
     Recipe(r"^torchrun ", subs=((r"^torchrun --nproc_per_node=2", "torchrun --standalone --nproc_per_node=2"),
@@ -114,7 +118,7 @@ RECIPES: list[Recipe] = [
     Recipe(r"^python train\.py model=holinet_small$", smoke=f"{SMOKE_TRAIN} {_RUN}",
            outputs=("run/checkpoints/best.pt",), produces="ckpt:holinet_small"),
     Recipe(r"^python train\.py model=fredsnet$", smoke=f"{SMOKE_TRAIN} {PANO_64} {_RUN}",
-           outputs=("run/checkpoints/best.pt", "run/metrics.json"), produces="ckpt:fredsnet"),
+           outputs=("run/checkpoints/best.pt", "run/metrics.json"), produces="ckpt:fredsnet", fresh=True),
     Recipe(r"^python train\.py .*model=(fredsnet|holinet)\b", smoke=f"{SMOKE_TRAIN} {PANO_64} {_RUN}",
            outputs=("run/checkpoints/last.pt",)),
     Recipe(r"^python train\.py ", smoke=f"{SMOKE_TRAIN} {_RUN}", outputs=("run/checkpoints/last.pt",)),
@@ -318,13 +322,24 @@ class Outcome:
     tmp: Path
 
 
+#: the environment of every command
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg", "PYTHONUNBUFFERED": "1"}
+
+
 class Runner:
     """Runs the selected commands in a thread pool (``OMNIDL_README_JOBS`` at a time, default the CPU count up
-    to 4), the commands that produce checkpoints and sweeps first, each in its own folder under ``base``."""
+    to 4), the commands that produce checkpoints and sweeps first, each in its own folder under ``base``.
+
+    A ``python SCRIPT``, ``python -m MODULE`` or ``omnidl`` line runs in a child of the zygote (tests/zygote.py: a
+    process that has imported torch and omnidl once; ~3 s of CPU saved per command), the main job (``fresh``) and
+    every other line (``torchrun``, shell operators) through ``bash -c`` in a new process.
+    ``OMNIDL_README_ZYGOTE=0`` runs every line through ``bash -c``."""
 
     def __init__(self, base: Path, jobs: int):
+        from tests.zygote import Zygote
         self.base, self.pool = base, ThreadPoolExecutor(max_workers=max(1, jobs))
-        self.futures: dict[Command, Future] = {}
+        self.zygote = Zygote(ENV) if os.environ.get("OMNIDL_README_ZYGOTE", "1") != "0" else None
+        self.futures: dict[str, Future] = {}
         self.lock, self.frames_lock = threading.Lock(), threading.Lock()
 
     def start(self, cmds: list[Command]) -> None:
@@ -334,10 +349,13 @@ class Runner:
             self.submit(c)
 
     def submit(self, cmd: Command) -> Future:
+        """The run of ``cmd``; commands whose smoke lines are the same (``pip install -e . && python train.py
+        model=fredsnet`` of the set-up block and the main job's ``python train.py model=fredsnet``) share one run."""
+        key = _substitute(cmd.text, recipe_for(cmd), lambda m: m.group(0))
         with self.lock:
-            if cmd not in self.futures:
-                self.futures[cmd] = self.pool.submit(self._run, cmd, self.base / f"cmd{COMMANDS.index(cmd):02d}")
-            return self.futures[cmd]
+            if key not in self.futures:
+                self.futures[key] = self.pool.submit(self._run, cmd, self.base / f"cmd{COMMANDS.index(cmd):02d}")
+            return self.futures[key]
 
     def produced(self, key: str) -> str:
         cmd = _producer(key)
@@ -361,12 +379,19 @@ class Runner:
                     return str(_fisheye(self.base))
             return self.produced(key)
 
-        line = _substitute(cmd.text, recipe_for(cmd), fill)
+        from tests.zygote import forkable
+        recipe = recipe_for(cmd)
+        line = _substitute(cmd.text, recipe, fill)
+        argv = None if recipe.fresh or self.zygote is None else forkable(line)
         t0 = time.time()
-        res = subprocess.run(["bash", "-c", line], cwd=ROOT, capture_output=True, text=True,
-                             timeout=recipe_for(cmd).timeout,
-                             env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg", "PYTHONUNBUFFERED": "1"})
-        return Outcome(line, res.returncode, res.stdout, res.stderr, time.time() - t0, tmp)
+        if argv is None:
+            res = subprocess.run(["bash", "-c", line], cwd=ROOT, capture_output=True, text=True,
+                                 timeout=recipe.timeout, env=ENV)
+            return Outcome(line, res.returncode, res.stdout, res.stderr, time.time() - t0, tmp)
+        out, err = tmp.parent / f"{tmp.name}.stdout", tmp.parent / f"{tmp.name}.stderr"
+        rc = self.zygote.run(argv, str(ROOT), ENV, str(out), str(err), recipe.timeout)
+        return Outcome(line, rc, out.read_text(errors="replace"), err.read_text(errors="replace"),
+                       time.time() - t0, tmp)
 
 
 @pytest.fixture(scope="session")
@@ -377,6 +402,8 @@ def readme_runner(request, tmp_path_factory):
                   if item.originalname == "test_readme_command" and hasattr(item, "callspec")])
     yield runner
     runner.pool.shutdown(wait=False, cancel_futures=True)
+    if runner.zygote is not None:
+        runner.zygote.close()
 
 
 @pytest.mark.slow

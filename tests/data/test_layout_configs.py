@@ -4,8 +4,6 @@ folders of each format, and ``train.py`` -> ``evaluate.py`` end to end on datase
 
 import json
 import math
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,6 +14,7 @@ import torch
 from omnidl.data.collate import collate_samples
 from omnidl.data.horizonnet_format import HorizonNetFolderDataset, write_label_cor
 from omnidl.data.noncentral_indoor import NonCentralIndoorDataset
+from tests.zygote import run_python
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from adapter_fixtures import ROOMS, instantiate_split, paint_room  # noqa: E402
@@ -123,15 +122,16 @@ def test_noncentral_config_modes(synth_roots, tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 
 def _run(args):
-    r = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    """``python *args`` from the repository root, in a new process (a child of tests/zygote.py's zygote)."""
+    r = run_python(args, ROOT, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
 
 
 def train_and_evaluate(model: str, data: str, root: Path, out: Path, evaluate=()) -> dict:
     common = [f"model={model}", f"data={data}", f"data.root={root}", f"data.height={H}", f"data.width={W}",
               "trainer.num_threads=1", "trainer.progress=false"]
-    _run(["train.py", "trainer=debug", f"paths.output_dir={out / 'train'}", *common])
+    _run(["train.py", "trainer=debug", "trainer.max_steps=1", "trainer.val_max_batches=1",
+          f"paths.output_dir={out / 'train'}", *common])
     best = out / "train" / "checkpoints" / "best.pt"
     assert best.is_file()
     _run(["evaluate.py", f"checkpoint={best}", f"paths.output_dir={out / 'eval'}", "eval.batch_size=2",

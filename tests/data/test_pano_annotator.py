@@ -1,6 +1,5 @@
 import json
 import math
-import subprocess
 import sys
 from pathlib import Path
 
@@ -11,6 +10,7 @@ from omnidl.data.collate import collate_samples
 from omnidl.data.horizonnet_format import HorizonNetFolderDataset, write_label_cor
 from omnidl.data.pano_annotator import PanoAnnotatorLayout, read_pano_annotator_json
 from omnidl.metrics.layout import corners_to_layout
+from tests.zygote import run_python
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from adapter_fixtures import ROOMS, pano_annotator_label, write_pano_annotator  # noqa: E402
@@ -90,8 +90,8 @@ def test_layout_height_fallback(tmp_path):
 
 
 def _run(args, cwd):
-    r = subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=600,
-                       env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+    """``python *args`` in ``cwd``, in a new process (a child of tests/zygote.py's zygote)."""
+    r = run_python(args, cwd, timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return r
 
@@ -100,7 +100,8 @@ def train_and_evaluate(data: str, root: Path, out: Path) -> dict:
     """``train.py model=horizonnet data=<data> trainer=debug`` then ``evaluate.py`` with its best checkpoint."""
     common = [f"data={data}", f"data.root={root}", "data.height=64", "data.width=128", "trainer.num_threads=1",
               "trainer.progress=false"]
-    _run(["train.py", "model=horizonnet", "trainer=debug", f"paths.output_dir={out / 'train'}", *common], ROOT)
+    _run(["train.py", "model=horizonnet", "trainer=debug", "trainer.max_steps=1", "trainer.val_max_batches=1",
+          f"paths.output_dir={out / 'train'}", *common], ROOT)
     best = out / "train" / "checkpoints" / "best.pt"
     assert best.is_file()
     _run(["evaluate.py", "model=horizonnet", f"checkpoint={best}", f"paths.output_dir={out / 'eval'}",
