@@ -81,3 +81,16 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+#: the suite's longest files (tests/test_readme.py alone is ~4 min on two cores), started first: pytest-xdist hands
+#: whole files to the workers in collection order (`--dist loadfile`), and the README, collected near the end, used
+#: to start last and keep one worker busy for minutes after the other had finished.
+LONGEST_FIRST = ("tests/test_readme.py", "tests/models/test_all_models_compile.py", "tests/models/test_export.py",
+                 "tests/engine/test_signals.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    root = config.rootpath
+    items.sort(key=lambda item: rank.get(item.path.relative_to(root).as_posix(), len(rank)))

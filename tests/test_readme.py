@@ -379,7 +379,7 @@ class Runner:
                     return str(_fisheye(self.base))
             return self.produced(key)
 
-        from tests.zygote import forkable
+        from tests.zygote import forkable, read_text
         recipe = recipe_for(cmd)
         line = _substitute(cmd.text, recipe, fill)
         argv = None if recipe.fresh or self.zygote is None else forkable(line)
@@ -390,8 +390,7 @@ class Runner:
             return Outcome(line, res.returncode, res.stdout, res.stderr, time.time() - t0, tmp)
         out, err = tmp.parent / f"{tmp.name}.stdout", tmp.parent / f"{tmp.name}.stderr"
         rc = self.zygote.run(argv, str(ROOT), ENV, str(out), str(err), recipe.timeout)
-        return Outcome(line, rc, out.read_text(errors="replace"), err.read_text(errors="replace"),
-                       time.time() - t0, tmp)
+        return Outcome(line, rc, read_text(out), read_text(err), time.time() - t0, tmp)
 
 
 @pytest.fixture(scope="session")

@@ -22,7 +22,9 @@ import os
 import runpy
 import select
 import shlex
+import subprocess
 import sys
+import threading
 
 #: modules every README command imports (the expensive part of starting one); not the ones run with ``-m``
 PRELOAD = ("torch", "torchvision", "numpy", "cv2", "hydra", "omegaconf", "omnidl.engine", "omnidl.models",
@@ -55,8 +57,6 @@ class Zygote:
     seconds is killed and raises ``subprocess.TimeoutExpired``, as ``subprocess.run`` does)."""
 
     def __init__(self, env: dict[str, str]) -> None:
-        import subprocess
-        import threading
         self._proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       env=env, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         self._lock = threading.Lock()
@@ -78,15 +78,17 @@ class Zygote:
                 slot["done"].set()
 
     def run(self, argv: list[str], cwd: str, env: dict[str, str], stdout: str, stderr: str, timeout: float) -> int:
-        import subprocess
-        import threading
         with self._lock:
             self._next += 1
             rid = str(self._next)
             slot = self._waiting[rid] = {"done": threading.Event()}
-            self._proc.stdin.write((json.dumps({"id": rid, "argv": argv, "cwd": cwd, "env": env, "stdout": stdout,
-                                                "stderr": stderr}) + "\n").encode())
-            self._proc.stdin.flush()
+            try:
+                self._proc.stdin.write((json.dumps({"id": rid, "argv": argv, "cwd": cwd, "env": env,
+                                                    "stdout": stdout, "stderr": stderr}) + "\n").encode())
+                self._proc.stdin.flush()
+            except OSError as e:
+                raise RuntimeError(f"the zygote (tests/zygote.py) is gone (exit code {self._proc.poll()}): {e}; "
+                                   "OMNIDL_README_ZYGOTE=0 runs the README commands without it") from e
         if not slot["done"].wait(timeout):
             if "pid" in slot:
                 os.kill(slot["pid"], 9)
@@ -94,7 +96,6 @@ class Zygote:
         return int(slot["rc"])
 
     def close(self) -> None:
-        import subprocess
         try:
             self._proc.stdin.close()
             self._proc.wait(timeout=60)
@@ -106,11 +107,10 @@ _SHARED: Zygote | None = None
 
 
 def run_python(args: list[str], cwd: str | os.PathLike, env: dict[str, str] | None = None,
-               timeout: float = 900) -> "subprocess.CompletedProcess[str]":
+               timeout: float = 900) -> subprocess.CompletedProcess[str]:
     """``python *args`` (a script or ``-m MODULE``) in a child of this test process's zygote (started on first use,
     with ``OMP_NUM_THREADS=1``), returned as ``subprocess.run(..., capture_output=True, text=True)`` returns it."""
     import atexit
-    import subprocess
     import tempfile
     global _SHARED
     base = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -121,8 +121,16 @@ def run_python(args: list[str], cwd: str | os.PathLike, env: dict[str, str] | No
     with tempfile.TemporaryDirectory() as tmp:
         out, err = os.path.join(tmp, "stdout"), os.path.join(tmp, "stderr")
         rc = _SHARED.run(argv, str(cwd), {**base, **(env or {})}, out, err, timeout)
-        with open(out, errors="replace") as f_out, open(err, errors="replace") as f_err:
-            return subprocess.CompletedProcess(argv, rc, f_out.read(), f_err.read())
+        return subprocess.CompletedProcess(argv, rc, read_text(out), read_text(err))
+
+
+def read_text(path: str | os.PathLike) -> str:
+    """A child's stdout/stderr file ("" where it never started: the zygote had died)."""
+    try:
+        with open(path, errors="replace") as f:
+            return f.read()
+    except FileNotFoundError:
+        return ""
 
 
 def _run_child(req: dict) -> None:
@@ -170,7 +178,10 @@ def _reply(obj: dict) -> None:
 
 def main() -> None:
     for name in PRELOAD:
-        __import__(name)
+        try:
+            __import__(name)
+        except ImportError:  # an optional one missing: the commands that need it import it (and fail) themselves
+            pass
     running: dict[int, str] = {}
     buf = b""
     stdin_open = True
