@@ -48,8 +48,9 @@ def test_default_fredsnet_keys_unchanged():
     assert "backbone.body.conv1.weight" in keys and not any(".vit." in k for k in keys)
 
 
-def test_horizonnet_with_vit_encoder():
-    model = create_model("horizonnet", hidden=16, encoder=TINY)
+@pytest.mark.parametrize("encoder", ["dinov2", "dinov3"])
+def test_horizonnet_with_vit_encoder(encoder):
+    model = create_model("horizonnet", hidden=16, encoder={"dinov2": TINY, "dinov3": TINY3}[encoder])
     out = model(torch.rand(1, 3, 64, 128))
     assert out["boundary"].shape == (1, 2, 128) and out["corner"].shape == (1, 1, 128)
 
@@ -113,12 +114,6 @@ def test_fredsnet_with_dinov3_encoder_trains(freeze):
         assert not grads["register_tokens"] and not grads["blocks.1.attn.qkv.weight"]
         assert grads["blocks.2.attn.qkv.weight"]
     assert "backbone.vit.rope.periods" in model.state_dict()
-
-
-def test_horizonnet_with_dinov3_encoder():
-    model = create_model("horizonnet", hidden=16, encoder=TINY3)
-    out = model(torch.rand(1, 3, 64, 128))
-    assert out["boundary"].shape == (1, 2, 128) and out["corner"].shape == (1, 1, 128)
 
 
 def test_encoder_loads_timm_dinov3_weights_and_names_a_wrong_family(tmp_path):
