@@ -3,8 +3,8 @@
 :class:`PanoramaViews` wraps a panorama dataset (any map-style dataset of sample dicts with ``image`` and ``depth``
 on a known camera: the built-in synthetic rooms by default, Stanford2D3DS, a ``_target_``; central or non-central)
 and yields the views of :func:`omnidl.geometry.views.view_layout` -- the same views, cut by the same code
-(:func:`~omnidl.geometry.views.view_grid` / :func:`~omnidl.geometry.views.cut_views`), that the zero-shot chain
-:func:`~omnidl.geometry.views.depth_through_views` runs a network on:
+(:func:`~omnidl.geometry.views.view_warp`, kept per view and sampled as :func:`~omnidl.geometry.views.cut_views`
+samples it), that the zero-shot chain :func:`~omnidl.geometry.views.depth_through_views` runs a network on:
 
 * **one sample per view**: sample ``i`` is view ``i % V`` of panorama ``i // V`` (``V`` views the camera sees: 12
   ``tangent``, 6 ``cube`` for a full panorama), so an epoch shows every view of every panorama once; the training
@@ -37,7 +37,7 @@ from torch.utils.data import Dataset
 from omnidl.cameras.base import Camera
 from omnidl.cameras.equirectangular import Equirectangular
 from omnidl.cameras.resolve import resolve_camera
-from omnidl.geometry.views import View, cut_views, view_cos, view_grid, view_layout, visible_views
+from omnidl.geometry.views import View, view_cos, view_layout, view_warp, visible_views
 from omnidl.geometry.warp import WarpGrid, sample_grid
 
 from .fisheye import SPLITS, build_panoramas
@@ -73,7 +73,7 @@ class PanoramaViews(Dataset):
         self._camera_spec = camera if camera is not None else getattr(self.panoramas, "camera", None)
         self._cameras: dict[tuple[int, int], tuple[Camera, list[View], list[int]]] = {}
         self._rays: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
-        self._grids: dict[tuple[int, int, int], tuple[Tensor, Tensor]] = {}
+        self._grids: dict[tuple[int, int, int], WarpGrid] = {}
         if self._camera_spec is not None:
             cam = resolve_camera(self._camera_spec)
             self.views_per_panorama = len(self._setup(cam.width, cam.height)[1])
@@ -142,17 +142,16 @@ class PanoramaViews(Dataset):
             raise ValueError(f"PanoramaViews: panorama {k} ({w}x{h}) sees {len(views)} views, the dataset was "
                              f"sized for {self.views_per_panorama}; give every panorama the same camera")
         view, vi = views[j], idx[j]
+        gkey = (w, h, vi)
+        if gkey not in self._grids:
+            self._grids[gkey] = view_warp(cam, view, self.assumed_range)
+        grid = self._grids[gkey]
         img = image_to_float(pano["image"], f"panorama {k}").float()
-        image, seen = cut_views(img, cam, [view], self.assumed_range)
+        image, seen = sample_grid(img.reshape(1, -1, h, w), grid, "bilinear")    # the chain's cut (cut_views)
         image, seen = image[0], seen[0, 0]
         depth = pano["depth"].float().reshape(1, h, w)
         has = (depth > 0) & torch.isfinite(depth)
         depth = torch.where(has, depth, torch.zeros_like(depth))
-        gkey = (w, h, vi)
-        if gkey not in self._grids:
-            self._grids[gkey] = view_grid(cam, view, self.assumed_range)
-        uv, ok = self._grids[gkey]
-        grid = WarpGrid(uv.unsqueeze(0), ok.unsqueeze(0), cam.width, cam.height, cam.wraps_horizontally)
         stack = torch.cat([self._points(cam, depth), has.float()])[None]          # (1, 4, H, W)
         near, ok_near = sample_grid(stack, grid, "nearest")
         r = near[0, :3].norm(dim=0)                                               # range from the centre

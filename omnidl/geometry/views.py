@@ -143,6 +143,14 @@ def view_grid(camera: Camera, view: View, assumed_range: float = 3.0, device=Non
     return uv, ok
 
 
+def view_warp(camera: Camera, view: View, assumed_range: float = 3.0, device=None) -> WarpGrid:
+    """:func:`view_grid` as the sampling grid of ``view`` in ``camera``'s image (the 360° seam wrapped where the camera
+    wraps): ``sample_grid(image (1, C, H, W), view_warp(...), "bilinear")`` is the view's cut (:func:`cut_views`);
+    callers that cut the same view many times keep it."""
+    uv, ok = view_grid(camera, view, assumed_range, device)
+    return WarpGrid(uv.unsqueeze(0), ok.unsqueeze(0), camera.width, camera.height, camera.wraps_horizontally)
+
+
 def view_cos(view: View, dtype: torch.dtype = torch.float64, device=None) -> Tensor:
     """``(S, S)`` cosine of each view pixel's ray to the view's optical axis (``+z``). A view's z-depth is
     ``range * view_cos`` (range from the centre along the pixel's ray): the conversion the chain inverts when it
@@ -159,9 +167,7 @@ def cut_views(image: Tensor, camera: Camera, views: Sequence[View], assumed_rang
                          f"got {tuple(image.shape)}")
     outs, valids = [], []
     for view in views:
-        uv, ok = view_grid(camera, view, assumed_range, x.device)
-        grid = WarpGrid(uv.unsqueeze(0), ok.unsqueeze(0), camera.width, camera.height, camera.wraps_horizontally)
-        out, valid = sample_grid(x, grid, "bilinear")
+        out, valid = sample_grid(x, view_warp(camera, view, assumed_range, x.device), "bilinear")
         outs.append(out[0])
         valids.append(valid[0])
     return torch.stack(outs), torch.stack(valids)
@@ -348,8 +354,9 @@ class FusedViews:
 
 class ViewDepth(NamedTuple):
     """Result of :func:`depth_through_views`: ``depth (1, H, W)`` range along each pixel's ray (0 where invalid),
-    ``valid (1, H, W)``, the views, their predictions ``(V, 1, S, S)``, the alignment and ``border (1, H, W)`` (pixels
-    in a view-border band, for seam statistics)."""
+    ``valid (1, H, W)``, the views, their predictions ``(V, 1, S, S)``, the alignment, ``border (1, H, W)`` (pixels
+    in a view-border band, for seam statistics) and the views' cut masks ``(V, 1, S, S)`` (where the camera sees
+    each view pixel)."""
 
     depth: Tensor
     valid: Tensor
@@ -357,6 +364,7 @@ class ViewDepth(NamedTuple):
     preds: Tensor
     alignment: Alignment
     border: Tensor
+    masks: Tensor | None = None
 
 
 #: a non-central pixel's fixed point counts as converged when its last step moved ``t`` by at most this fraction
@@ -455,7 +463,7 @@ def depth_through_views(image: Tensor, camera: Camera, predict: Callable[[Tensor
     alignment = align_views(s, kind, align, robust_iters)
     fused = FusedViews(pred, views, alignment, masks)
     depth, valid, border = fuse_on_camera(fused, camera, noncentral_iters, assumed_range)
-    return ViewDepth(depth, valid, views, pred, alignment, border)
+    return ViewDepth(depth, valid, views, pred, alignment, border, masks)
 
 
 def fuse_maps(maps: Tensor, views: Sequence[View], directions: Tensor, masks: Tensor | None = None
@@ -561,14 +569,12 @@ class ThroughViews(torch.nn.Module):
             t = res.depth.reshape(-1).to(torch.float64)
             X = o + t[:, None] * d
             d = torch.where(res.valid.reshape(-1, 1), X / X.norm(dim=-1, keepdim=True).clamp_min(1e-12), d)
-        masks = cut_views(torch.zeros(1, cam.height, cam.width, device=logits.device), cam, res.views,
-                          self.assumed_range)[1]
-        probs, ok = fuse_maps(logits.softmax(1), res.views, d.to(logits.dtype), masks)
+        probs, ok = fuse_maps(logits.softmax(1), res.views, d.to(logits.dtype), res.masks)
         C = logits.shape[1]
         probs = torch.where(ok[None], probs, torch.full_like(probs, 1.0 / C))
         return probs.clamp_min(1e-8).log().reshape(C, cam.height, cam.width)
 
 
-__all__ = ["View", "view_layout", "view_grid", "view_cos", "cut_views", "sample_views", "Samples", "align_views",
+__all__ = ["View", "view_layout", "view_grid", "view_warp", "view_cos", "cut_views", "sample_views", "Samples", "align_views",
            "Alignment", "FusedViews", "fuse_on_camera", "depth_through_views", "visible_views", "ViewDepth", "LAYOUTS",
            "KINDS", "ALIGNS", "NONCENTRAL_TOL", "fuse_maps", "ThroughViews"]
