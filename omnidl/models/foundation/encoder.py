@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._checks import check_image
-from .vit import DINOV3_SIZES, VIT_SIZES, VisionTransformer
+from .vit import DINOV3_SIZES, FAMILY_DEFAULTS, VIT_SIZES, VisionTransformer
 
 log = logging.getLogger(__name__)
 
@@ -75,11 +75,11 @@ STRIDES = (4, 8, 16, 32)
 
 
 def _file_kind(state: Mapping[str, Tensor]) -> tuple[str, int, int, int]:
-    """``(family, registers, embed_dim, depth)`` of a converted ViT state dict."""
-    family = "dinov2" if "pos_embed" in state else "dinov3"
-    regs = int(state["register_tokens"].shape[1]) if "register_tokens" in state else 0
-    depth = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("blocks."))
-    return family, regs, int(state["cls_token"].shape[-1]), depth
+    """``(family, registers, embed_dim, depth)`` of a converted ViT state dict (read by
+    :func:`~omnidl.models.foundation.convert.vit_config_of`)."""
+    from .convert import vit_config_of
+    cfg = vit_config_of(state)
+    return cfg["family"], cfg["num_registers"], cfg["embed_dim"], cfg["depth"]
 
 
 def _fitting_encoders(kind: tuple[str, int, int, int]) -> list[str]:
@@ -88,7 +88,7 @@ def _fitting_encoders(kind: tuple[str, int, int, int]) -> list[str]:
         size = args["size"]
         dim, depth = (VIT_SIZES[size][:2] if size in VIT_SIZES else DINOV3_SIZES[size][:2])
         family = "dinov2" if size in VIT_SIZES else "dinov3"
-        regs = args.get("num_registers", 0 if family == "dinov2" else 4)
+        regs = args.get("num_registers", FAMILY_DEFAULTS[family]["num_registers"])
         if (family, regs, dim, depth) == kind:
             out.append(name)
     return out
