@@ -330,15 +330,16 @@ class Runner:
     """Runs the selected commands in a thread pool (``OMNIDL_README_JOBS`` at a time, default the CPU count up
     to 4), the commands that produce checkpoints and sweeps first, each in its own folder under ``base``.
 
-    A ``python SCRIPT``, ``python -m MODULE`` or ``omnidl`` line runs in a child of the zygote (tests/zygote.py: a
-    process that has imported torch and omnidl once; ~3 s of CPU saved per command), the main job (``fresh``) and
-    every other line (``torchrun``, shell operators) through ``bash -c`` in a new process.
+    A ``python SCRIPT``, ``python -m MODULE`` or ``omnidl`` line runs in a child of the test process's zygote
+    (tests/zygote.py ``shared()``: a process that has imported torch and omnidl once; ~3 s of CPU saved per
+    command), the main job (``fresh``) and every other line (``torchrun``, shell operators) through ``bash -c`` in
+    a new process.
     ``OMNIDL_README_ZYGOTE=0`` runs every line through ``bash -c``."""
 
     def __init__(self, base: Path, jobs: int):
-        from tests.zygote import Zygote
+        from tests.zygote import shared
         self.base, self.pool = base, ThreadPoolExecutor(max_workers=max(1, jobs))
-        self.zygote = Zygote(ENV) if os.environ.get("OMNIDL_README_ZYGOTE", "1") != "0" else None
+        self.zygote = shared() if os.environ.get("OMNIDL_README_ZYGOTE", "1") != "0" else None
         self.futures: dict[str, Future] = {}
         self.lock, self.frames_lock = threading.Lock(), threading.Lock()
 
@@ -401,8 +402,6 @@ def readme_runner(request, tmp_path_factory):
                   if item.originalname == "test_readme_command" and hasattr(item, "callspec")])
     yield runner
     runner.pool.shutdown(wait=False, cancel_futures=True)
-    if runner.zygote is not None:
-        runner.zygote.close()
 
 
 @pytest.mark.slow

@@ -104,23 +104,29 @@ class Zygote:
 
 
 _SHARED: Zygote | None = None
+#: the environment of every command run through :func:`shared` (a command's own ``env`` is added to it)
+BASE_ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+
+
+def shared() -> Zygote:
+    """This test process's zygote: started on first use (preloads imported with :data:`BASE_ENV`), closed at exit."""
+    import atexit
+    global _SHARED
+    if _SHARED is None:
+        _SHARED = Zygote(BASE_ENV)
+        atexit.register(_SHARED.close)
+    return _SHARED
 
 
 def run_python(args: list[str], cwd: str | os.PathLike, env: dict[str, str] | None = None,
                timeout: float = 900) -> subprocess.CompletedProcess[str]:
-    """``python *args`` (a script or ``-m MODULE``) in a child of this test process's zygote (started on first use,
-    with ``OMP_NUM_THREADS=1``), returned as ``subprocess.run(..., capture_output=True, text=True)`` returns it."""
-    import atexit
+    """``python *args`` (a script or ``-m MODULE``) in a child of :func:`shared`, returned as
+    ``subprocess.run(..., capture_output=True, text=True)`` returns it."""
     import tempfile
-    global _SHARED
-    base = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    if _SHARED is None:
-        _SHARED = Zygote(base)
-        atexit.register(_SHARED.close)
     argv = ["python", *map(str, args)]
     with tempfile.TemporaryDirectory() as tmp:
         out, err = os.path.join(tmp, "stdout"), os.path.join(tmp, "stderr")
-        rc = _SHARED.run(argv, str(cwd), {**base, **(env or {})}, out, err, timeout)
+        rc = shared().run(argv, str(cwd), {**BASE_ENV, **(env or {})}, out, err, timeout)
         return subprocess.CompletedProcess(argv, rc, read_text(out), read_text(err))
 
 
